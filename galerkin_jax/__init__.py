@@ -1,0 +1,40 @@
+"""galerkin_jax: Galerkin time finite elements and variational integrators for Hamiltonian systems.
+
+References: [GBS] Gross, Betsch, Steinmann, Comparison of Galerkin methods applied to
+classical mechanics; [Tang] W. Tang, Two types of variational integrators and their
+equivalence.
+"""
+
+from ._galerkin import CG as CG, DG as DG
+from ._integrate import (
+    Solution as Solution,
+    amplification_matrix as amplification_matrix,
+    integrate as integrate,
+    step as step,
+)
+from ._newton import Status as Status, status_message as status_message
+from ._quadrature import (
+    QuadratureRule as QuadratureRule,
+    gauss_legendre as gauss_legendre,
+    gauss_lobatto as gauss_lobatto,
+    gauss_radau as gauss_radau,
+    midpoint as midpoint,
+    trapezoid as trapezoid,
+)
+
+__all__ = [
+    "CG",
+    "DG",
+    "QuadratureRule",
+    "Solution",
+    "Status",
+    "amplification_matrix",
+    "gauss_legendre",
+    "gauss_lobatto",
+    "gauss_radau",
+    "integrate",
+    "midpoint",
+    "status_message",
+    "step",
+    "trapezoid",
+]

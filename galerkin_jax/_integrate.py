@@ -1,0 +1,180 @@
+"""One time element (``step``) and many (``integrate``): Newton per element, ``lax.scan`` over elements."""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from . import _checks
+from ._newton import Status, solve_implicit
+
+DEFAULT_MAX_NEWTON_ITERATIONS = 32
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Solution:
+    """Saved states of ``integrate``.
+
+    Attributes:
+        t: shape ``(m,)``, ``m = n_steps // save_every + 1``, starting at 0.
+        q, p: shape ``(m, d)``, the initial state first.
+        status: int32 ``Status`` code, 0 when every implicit solve converged. After the
+            first failure the remaining states are NaN.
+        stats: ``num_newton_iterations`` (total) and ``max_newton_iterations`` (largest
+            count in one element).
+    """
+
+    t: jax.Array
+    q: jax.Array
+    p: jax.Array
+    status: jax.Array
+    stats: dict
+
+
+def bind_args(H, args):
+    return H if args is None else (lambda q, p: H(q, p, args))
+
+
+def _input_status(q0, p0, h):
+    ok = jnp.isfinite(h) & (h > 0) & jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(p0))
+    return jnp.where(ok, Status.SUCCESS, Status.INVALID_INPUT).astype(jnp.int32)
+
+
+def solve_element(method, H, q0, p0, h, previous, max_iterations):
+    """Solve one element; returns ``(q1, p1, Z, iterations, status)``.
+
+    The predictor is the previous element's polynomial extrapolated, or the constant
+    state when that has the larger residual (it can overshoot at large h omega).
+    """
+    residual = lambda Z: method.residual(H, q0, p0, Z, h)
+    Z0 = method.initial_guess(q0, p0)
+    if previous is not None:
+        Z_extrapolated = method.initial_guess(q0, p0, previous)
+        r0, r1 = (jnp.max(jnp.abs(residual(Z))) for Z in (Z0, Z_extrapolated))
+        Z0 = jnp.where(r1 < r0, Z_extrapolated, Z0)
+    Z, iterations, status = solve_implicit(residual, Z0, max_iterations)
+    q1, p1 = method.end_state(H, q0, p0, Z, h)
+    finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
+    status = jnp.where((status == 0) & ~finite, Status.NONFINITE, status).astype(jnp.int32)
+    return q1, p1, Z, iterations, status
+
+
+def _prepare(H, q0, p0, method, h, args):
+    _checks.check_function(H)
+    _checks.check_method(method)
+    q0, p0 = _checks.check_state(q0, p0)
+    _checks.check_step_size(h)
+    fn = bind_args(H, args)
+    _checks.check_scalar_output(fn, q0, p0)
+    return q0, p0, jnp.asarray(h, q0.dtype)
+
+
+def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS):
+    """One time element: ``(q, p) -> (q1, p1)``.
+
+    A failed solve returns NaN, never a plausible state; ``integrate`` reports why.
+
+    Args:
+        H: ``H(q, p)`` or ``H(q, p, args)`` returning a scalar (``L(q, qdot)`` for LagrangianVI).
+        q, p: shape ``(d,)``.
+        method: e.g. ``CG(k, rule)``, ``DG(k, rule)``.
+        h: step size, scalar > 0.
+    Returns:
+        ``(q1, p1)``, each shape ``(d,)``.
+    """
+    q, p, h = _prepare(H, q, p, method, h, args)
+    return _step(H, q, p, method, h, args, max_newton_iterations)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 6))
+def _step(H, q, p, method, h, args, max_iterations):
+    q1, p1, _, _, status = solve_element(method, bind_args(H, args), q, p, h, None, max_iterations)
+    status = jnp.maximum(status, _input_status(q, p, h))
+    bad = status != Status.SUCCESS
+    return jnp.where(bad, jnp.nan, q1), jnp.where(bad, jnp.nan, p1)
+
+
+def integrate(
+    H,
+    q0,
+    p0,
+    *,
+    method,
+    h,
+    n_steps,
+    args=None,
+    save_every=1,
+    max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
+):
+    """Integrate Hamilton's equations over ``n_steps`` elements of size ``h``.
+
+    The elements are chained by a nested ``lax.scan`` (outer over saves, inner over
+    ``save_every`` elements), so memory is O(n_steps / save_every).
+
+    Args:
+        H: ``H(q, p)`` or ``H(q, p, args)`` (``L(q, qdot)`` for LagrangianVI).
+        q0, p0: shape ``(d,)`` (p0 is the initial momentum for LagrangianVI too).
+        method: a method object (CG, DG, GalerkinVI, ...).
+        h: step size > 0; may be traced (vmap over step sizes).
+        n_steps: number of elements, a multiple of ``save_every``. Static.
+        args: pytree passed to ``H`` as third argument; may be traced.
+        save_every: store every ``save_every``-th state. Static.
+        max_newton_iterations: iteration cap per element. Static.
+    Returns:
+        ``Solution`` with ``m = n_steps // save_every + 1`` saved states.
+    """
+    q0, p0, h = _prepare(H, q0, p0, method, h, args)
+    _checks.check_counts(n_steps, save_every)
+    return _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_newton_iterations)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8))
+def _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_iterations):
+    fn = bind_args(H, args)
+    Z0 = method.initial_guess(q0, p0)
+    status0 = _input_status(q0, p0, h)
+    zero = jnp.int32(0)
+
+    def element(carry, _):
+        q, p, previous, status, total, most = carry
+        q1, p1, Z, iterations, s = solve_element(method, fn, q, p, h, previous, max_iterations)
+        status = jnp.where(status == Status.SUCCESS, s, status)
+        failed = status != Status.SUCCESS
+        q1, p1 = jnp.where(failed, jnp.nan, q1), jnp.where(failed, jnp.nan, p1)
+        carry = (q1, p1, (q, p, Z), status, total + iterations, jnp.maximum(most, iterations))
+        return carry, None
+
+    def block(carry, _):
+        carry, _ = jax.lax.scan(element, carry, None, length=save_every)
+        return carry, (carry[0], carry[1])
+
+    carry = (q0, p0, (q0, p0, Z0), status0, zero, zero)
+    carry, (qs, ps) = jax.lax.scan(block, carry, None, length=n_steps // save_every)
+    _, _, _, status, total, most = carry
+    return Solution(
+        t=jnp.arange(n_steps // save_every + 1, dtype=q0.dtype) * (save_every * h),
+        q=jnp.concatenate([q0[None], qs]),
+        p=jnp.concatenate([p0[None], ps]),
+        status=status,
+        stats={"num_newton_iterations": total, "max_newton_iterations": most},
+    )
+
+
+def amplification_matrix(H, q, p, *, method, h, args=None):
+    """A = d z_1 / d z_0 of one element, by ``jax.jacfwd`` through the implicit solve [GBS, eq. (48)].
+
+    For a quadratic H this is the amplification matrix of the two-level scheme
+    ``z_{k+1} = A z_0``; in general it is the Jacobian of the one-step map.
+
+    Returns:
+        shape ``(2d, 2d)`` in the ordering ``z = (q, p)``.
+    """
+    q, p, h = _prepare(H, q, p, method, h, args)
+    d = q.shape[0]
+
+    def one_step(z):
+        return jnp.concatenate(_step(H, z[:d], z[d:], method, h, args, DEFAULT_MAX_NEWTON_ITERATIONS))
+
+    return jax.jacfwd(one_step)(jnp.concatenate([q, p]))

@@ -1,0 +1,105 @@
+"""Newton's method for the element equations, differentiated by the implicit function theorem."""
+
+import enum
+
+import jax
+import jax.numpy as jnp
+
+
+class Status(enum.IntEnum):
+    """Codes of ``Solution.status``; the first failure of a run is kept."""
+
+    SUCCESS = 0
+    NEWTON_MAX_ITERATIONS = 1
+    NONFINITE = 2
+    INVALID_INPUT = 3
+
+
+MESSAGES = {
+    Status.SUCCESS: "Every implicit solve converged.",
+    Status.NEWTON_MAX_ITERATIONS: (
+        "Newton did not converge within max_newton_iterations; reduce h or raise the cap. "
+        "The element equations may have no real solution for this h."
+    ),
+    Status.NONFINITE: "NaN or inf in the element unknowns; check H, args and the initial state.",
+    Status.INVALID_INPUT: "Invalid traced input: h <= 0 or a non-finite initial state.",
+}
+
+
+def status_message(status):
+    """The message of a status code (an int or a concrete array)."""
+    return MESSAGES[Status(int(status))]
+
+
+def newton(residual, Z0, max_iterations):
+    """Newton on ``residual(Z) = 0`` in a ``lax.while_loop``; never raises.
+
+    It stops at the round-off floor: when the update is below
+    ``10 eps (1 + max|Z|)``, or when it has stopped shrinking while already below
+    ``sqrt(eps) (1 + max|Z|)`` (ill-conditioned systems, e.g. large h omega, cannot reach
+    the first bound).
+
+    Returns:
+        ``(Z, iterations, status)`` with ``status`` a ``Status`` code (int32).
+    """
+    shape, dtype = Z0.shape, Z0.dtype
+    eps = jnp.finfo(dtype).eps
+
+    def r_flat(z):
+        return residual(z.reshape(shape)).reshape(-1)
+
+    def cond(carry):
+        it, _, _, done, _ = carry
+        return (it < max_iterations) & ~done
+
+    def body(carry):
+        it, z, dz_prev, _, _ = carry
+        r, jvp = jax.linearize(r_flat, z)
+        jac = jax.vmap(jvp, out_axes=1)(jnp.eye(z.size, dtype=dtype))
+        dz = jnp.linalg.solve(jac, r)
+        z = z - dz
+        size = 1.0 + jnp.max(jnp.abs(z))
+        step = jnp.max(jnp.abs(dz))
+        finite = jnp.all(jnp.isfinite(z))
+        converged = (step <= 10.0 * eps * size) | (
+            (step <= jnp.sqrt(eps) * size) & (step >= 0.5 * dz_prev)
+        )
+        status = jnp.where(finite, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32)
+        return it + 1, z, step, converged | ~finite, status
+
+    z0 = Z0.reshape(-1)
+    finite0 = jnp.all(jnp.isfinite(z0))
+    init = (
+        jnp.int32(0),
+        z0,
+        jnp.asarray(jnp.inf, dtype),
+        ~finite0,
+        jnp.where(finite0, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32),
+    )
+    it, z, _, done, status = jax.lax.while_loop(cond, body, init)
+    status = jnp.where(done, status, Status.NEWTON_MAX_ITERATIONS).astype(jnp.int32)
+    return z.reshape(shape), it, status
+
+
+def solve_implicit(residual, Z0, max_iterations):
+    """Root of ``residual`` near ``Z0``; derivatives by the implicit function theorem.
+
+    ``jax.lax.custom_root`` differentiates the converged root through
+    ``dZ = -(dR/dZ)^{-1} dR/dtheta`` for every value closed over by ``residual``
+    (q0, p0, h, quadrature, args), never through the Newton iterations.
+
+    Returns:
+        ``(Z, iterations, status)``, both counts int32.
+    """
+
+    def solve(f, z0):
+        Z, it, status = newton(f, z0, max_iterations)
+        # aux travels as float: integer aux breaks custom_root's JVP (jax-ml/jax#24295)
+        return Z, (it.astype(Z.dtype), status.astype(Z.dtype))
+
+    def tangent_solve(g, y):
+        return jnp.linalg.solve(jax.jacfwd(g)(y).reshape(y.size, y.size), y.reshape(-1)).reshape(y.shape)
+
+    Z, (it, status) = jax.lax.custom_root(residual, Z0, solve, tangent_solve, has_aux=True)
+    it, status = jax.lax.stop_gradient((it, status))
+    return Z, it.astype(jnp.int32), status.astype(jnp.int32)

@@ -1,0 +1,58 @@
+"""Problems with exact or independent reference solutions, and order fitting."""
+
+import jax.numpy as jnp
+import numpy as np
+
+# The paper's isotropic oscillator [GBS, Figs. 4.1-4.5]: m = 2, c = -0.25, H = 0.25.
+OSC_M, OSC_C = 2.0, -0.25
+
+
+def oscillator(m=OSC_M, c=OSC_C):
+    """H = |p|^2 / (2m) - c |q|^2 / 2 [GBS, eq. (43)] and a 3-D state with H = 0.25, L != 0."""
+    H = lambda q, p: p @ p / (2 * m) - 0.5 * c * (q @ q)
+    omega = np.sqrt(-c / m)
+    # H = 0.25: q0 = (1, 0, 0) gives V = 0.125, |p0|^2 / (2m) = 0.125.
+    q0 = jnp.array([1.0, 0.0, 0.0])
+    p0 = jnp.array([0.0, np.sqrt(0.5) * 0.8, np.sqrt(0.5) * 0.6])
+    return H, q0, p0, omega
+
+
+def quartic(m=2.0, c=1000.0):
+    """V = c (r^2 - 1)^2 / 2 [GBS, Figs. 4.6-4.7], a 3-D state with H = 6000."""
+    V = lambda q: 0.5 * c * (q @ q - 1.0) ** 2
+    H = lambda q, p: p @ p / (2 * m) + V(q)
+    q0 = jnp.array([2.0, 0.0, 0.0])  # V = 4500
+    p0 = jnp.array([0.0, np.sqrt(2 * m * 1500.0), 0.0])  # T = 1500
+    return H, V, q0, p0
+
+
+def kepler(e=0.5):
+    """H = |p|^2 / 2 - 1 / |q|, starting at perihelion; period 2 pi."""
+    H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
+    q0 = jnp.array([1.0 - e, 0.0])
+    p0 = jnp.array([0.0, np.sqrt((1.0 + e) / (1.0 - e))])
+    return H, q0, p0
+
+
+def kepler_exact(t, e=0.5):
+    """Exact Kepler orbit (semi-major axis 1) from Kepler's equation E - e sin E = t, in NumPy."""
+    E = t
+    for _ in range(50):
+        E = E - (E - e * np.sin(E) - t) / (1.0 - e * np.cos(E))
+    q = np.array([np.cos(E) - e, np.sqrt(1 - e**2) * np.sin(E)])
+    dE = 1.0 / (1.0 - e * np.cos(E))
+    p = np.array([-np.sin(E) * dE, np.sqrt(1 - e**2) * np.cos(E) * dE])
+    return q, p
+
+
+def angular_momentum(q, p):
+    return jnp.cross(q, p)
+
+
+def fitted_order(hs, errs, floor=1e-12):
+    """Slope of log(err) against log(h), over the points whose error is above ``floor``."""
+    hs, errs = np.asarray(hs), np.asarray(errs)
+    keep = errs > floor
+    if keep.sum() < 2:
+        raise AssertionError(f"fewer than two errors above the floor {floor}: {errs}")
+    return np.polyfit(np.log(hs[keep]), np.log(errs[keep]), 1)[0]
