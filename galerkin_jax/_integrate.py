@@ -61,7 +61,7 @@ def solve_element(method, H, q0, p0, h, previous, max_iterations):
     return q1, p1, Z, iterations, status
 
 
-def _prepare(H, q0, p0, method, h, args):
+def prepare(H, q0, p0, method, h, args):
     _checks.check_function(H)
     _checks.check_method(method)
     q0, p0 = _checks.check_state(q0, p0)
@@ -84,7 +84,7 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEW
     Returns:
         ``(q1, p1)``, each shape ``(d,)``.
     """
-    q, p, h = _prepare(H, q, p, method, h, args)
+    q, p, h = prepare(H, q, p, method, h, args)
     return _step(H, q, p, method, h, args, max_newton_iterations)
 
 
@@ -107,6 +107,7 @@ def integrate(
     args=None,
     save_every=1,
     max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
+    checkpoint=False,
 ):
     """Integrate Hamilton's equations over ``n_steps`` elements of size ``h``.
 
@@ -122,43 +123,67 @@ def integrate(
         args: pytree passed to ``H`` as third argument; may be traced.
         save_every: store every ``save_every``-th state. Static.
         max_newton_iterations: iteration cap per element. Static.
+        checkpoint: rematerialise each saved block in reverse mode: a gradient then stores
+            one state per save instead of every element's residuals. Static.
     Returns:
         ``Solution`` with ``m = n_steps // save_every + 1`` saved states.
     """
-    q0, p0, h = _prepare(H, q0, p0, method, h, args)
+    q0, p0, h = prepare(H, q0, p0, method, h, args)
     _checks.check_counts(n_steps, save_every)
-    return _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_newton_iterations)
+    return _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_newton_iterations, checkpoint)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8))
-def _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_iterations):
-    fn = bind_args(H, args)
-    Z0 = method.initial_guess(q0, p0)
+def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, observe=None, acc0=None,
+          checkpoint=False):
+    """Chain ``n_blocks * block_size`` elements by a nested ``lax.scan``.
+
+    After every element ``acc = observe(acc, q1, p1)`` folds the new state into a
+    user accumulator (diagnostics kept in the carry, no trajectory stored).
+    ``checkpoint=True`` rematerialises each block in reverse mode, so a gradient stores
+    one carry per block instead of the residuals of every element.
+
+    Returns:
+        ``(final, (qs, ps))``: ``final`` holds ``q, p, status, total, most, acc``; ``qs, ps``
+        have shape ``(n_blocks, d)``, the state at the end of each block.
+    """
     status0 = _input_status(q0, p0, h)
     zero = jnp.int32(0)
 
     def element(carry, _):
-        q, p, previous, status, total, most = carry
+        q, p, previous, status, total, most, acc = carry
         q1, p1, Z, iterations, s = solve_element(method, fn, q, p, h, previous, max_iterations)
         status = jnp.where(status == Status.SUCCESS, s, status)
         failed = status != Status.SUCCESS
         q1, p1 = jnp.where(failed, jnp.nan, q1), jnp.where(failed, jnp.nan, p1)
-        carry = (q1, p1, (q, p, Z), status, total + iterations, jnp.maximum(most, iterations))
-        return carry, None
+        acc = acc if observe is None else observe(acc, q1, p1)
+        return (q1, p1, (q, p, Z), status, total + iterations, jnp.maximum(most, iterations), acc), None
 
     def block(carry, _):
-        carry, _ = jax.lax.scan(element, carry, None, length=save_every)
+        carry, _ = jax.lax.scan(element, carry, None, length=block_size)
         return carry, (carry[0], carry[1])
 
-    carry = (q0, p0, (q0, p0, Z0), status0, zero, zero)
-    carry, (qs, ps) = jax.lax.scan(block, carry, None, length=n_steps // save_every)
-    _, _, _, status, total, most = carry
+    if checkpoint:
+        block = jax.checkpoint(block)
+    carry = (q0, p0, (q0, p0, method.initial_guess(q0, p0)), status0, zero, zero, acc0)
+    carry, saved = jax.lax.scan(block, carry, None, length=n_blocks)
+    q, p, _, status, total, most, acc = carry
+    final = {"q": q, "p": p, "status": status, "total": total, "most": most, "acc": acc}
+    return final, saved
+
+
+@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9))
+def _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_iterations, checkpoint):
+    n_saves = n_steps // save_every
+    final, (qs, ps) = march(
+        method, bind_args(H, args), q0, p0, h, n_blocks=n_saves, block_size=save_every,
+        max_iterations=max_iterations, checkpoint=checkpoint,
+    )
     return Solution(
-        t=jnp.arange(n_steps // save_every + 1, dtype=q0.dtype) * (save_every * h),
+        t=jnp.arange(n_saves + 1, dtype=q0.dtype) * (save_every * h),
         q=jnp.concatenate([q0[None], qs]),
         p=jnp.concatenate([p0[None], ps]),
-        status=status,
-        stats={"num_newton_iterations": total, "max_newton_iterations": most},
+        status=final["status"],
+        stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"]},
     )
 
 
@@ -171,7 +196,7 @@ def amplification_matrix(H, q, p, *, method, h, args=None):
     Returns:
         shape ``(2d, 2d)`` in the ordering ``z = (q, p)``.
     """
-    q, p, h = _prepare(H, q, p, method, h, args)
+    q, p, h = prepare(H, q, p, method, h, args)
     d = q.shape[0]
 
     def one_step(z):
