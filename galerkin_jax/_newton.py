@@ -34,10 +34,11 @@ def status_message(status):
 def newton(residual, Z0, max_iterations):
     """Newton on ``residual(Z) = 0`` in a ``lax.while_loop``; never raises.
 
-    It stops at the round-off floor: when the update is below
-    ``10 eps (1 + max|Z|)``, or when it has stopped shrinking while already below
-    ``sqrt(eps) (1 + max|Z|)`` (ill-conditioned systems, e.g. large h omega, cannot reach
-    the first bound).
+    It stops at the round-off floor ``tol = 10 eps (1 + max|Z|)``: when the update is
+    below ``tol``; when convergence is quadratic (rate ``r = |dZ_k| / |dZ_{k-1}| <= 0.1``)
+    and the error left, ``~ |dZ_k| r^2``, is below ``tol``; or when the updates have
+    stopped shrinking while below ``sqrt(eps) (1 + max|Z|)`` (ill-conditioned systems,
+    e.g. huge h omega, cannot reach ``tol``).
 
     Returns:
         ``(Z, iterations, status)`` with ``status`` a ``Status`` code (int32).
@@ -61,8 +62,16 @@ def newton(residual, Z0, max_iterations):
         size = 1.0 + jnp.max(jnp.abs(z))
         step = jnp.max(jnp.abs(dz))
         finite = jnp.all(jnp.isfinite(z))
-        converged = (step <= 10.0 * eps * size) | (
-            (step <= jnp.sqrt(eps) * size) & (step >= 0.5 * dz_prev)
+        tol = 10.0 * eps * size
+        rate = step / dz_prev  # a contraction rate only from the second update on
+        converged = (step <= tol) | (
+            (it > 0)
+            & (
+                # quadratic phase: the error left after this update is ~ step * rate^2
+                ((rate <= 0.1) & (step * rate**2 <= tol))
+                # round-off floor of an ill-conditioned system: updates stopped shrinking
+                | ((step <= jnp.sqrt(eps) * size) & (rate >= 0.5))
+            )
         )
         status = jnp.where(finite, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32)
         return it + 1, z, step, converged | ~finite, status
