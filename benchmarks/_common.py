@@ -1,0 +1,42 @@
+"""Timing and result-writing helpers shared by the benchmarks."""
+
+import json
+import pathlib
+import platform
+import sys
+import time
+import timeit
+
+import jax
+
+RESULTS = pathlib.Path(__file__).parent / "results"
+
+
+def timed(fn, *args, repeat=5):
+    """(compile_s, run_s): ahead-of-time compilation, then the best of ``repeat`` runs."""
+    t0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(compiled(*args))
+    run_s = min(timeit.repeat(lambda: jax.block_until_ready(compiled(*args)), number=1, repeat=repeat))
+    return compile_s, run_s
+
+
+def machine():
+    with open("/proc/loadavg") as f:
+        load = f.read().split()[:3]
+    return {
+        "command": " ".join(["python"] + sys.argv),
+        "processor": platform.processor() or platform.machine(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "devices": [str(d) for d in jax.devices()],
+        "load_average": load,
+    }
+
+
+def write(name, results):
+    RESULTS.mkdir(exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps({"machine": machine(), **results}, indent=2))
+    print(f"wrote {path}")
