@@ -1,8 +1,10 @@
-"""Lagrange and Legendre bases on the master element [0, 1].
+"""Legendre polynomials on the master element [0, 1] and the exact matrices built from them.
 
-Everything purely polynomial is built once per degree in NumPy float64 (exact up to
-round-off); only the values at quadrature points, which may be traced, are
-evaluated in JAX.
+The Galerkin methods use modal (Legendre) coefficients instead of nodal values. The trial and
+test spaces are the paper's, so the element equations are the same; but with test functions
+(2i + 1) P_i(2 alpha - 1) every purely polynomial matrix has integer entries, exact in
+binary. A nodal basis rounds its matrices once, which perturbs the scheme itself and turns
+cG(k)'s exact energy conservation into a drift of a few eps per step.
 """
 
 import functools
@@ -28,52 +30,39 @@ def legendre_values(alpha, n):
     return jnp.stack(values, axis=-1)
 
 
-@functools.lru_cache(maxsize=None)
-def lobatto_nodes(k):
-    """The k + 1 Gauss-Lobatto nodes on [0, 1] (k >= 1), well-conditioned nodes for P^k."""
-    if k == 0:
-        return np.array([1.0])
-    p_k = np.zeros(k + 1)
-    p_k[-1] = 1.0
-    interior = np.sort(np.real(npleg.legroots(npleg.legder(p_k)))) if k > 1 else np.array([])
-    return (np.concatenate([[-1.0], interior, [1.0]]) + 1.0) / 2.0
+def legendre_antiderivatives(alpha, n):
+    """A_j(alpha) = int_0^alpha P_j(2t - 1) dt for j < n; shape ``(m, n)``.
 
-
-@functools.lru_cache(maxsize=None)
-def lagrange_in_legendre(k):
-    """C with M_J(alpha) = sum_j C[j, J] P_j(2 alpha - 1): the Lagrange basis of eq. (11) [GBS].
-
-    Nodes are ``lobatto_nodes(k)``; for k = 0 the single basis function is M_1 = 1.
+    A_0 = alpha and A_j = (P_{j+1} - P_{j-1}) / (2 (2j + 1)) for j >= 1, so A_j(1) = delta_j0.
     """
-    vander = npleg.legvander(2.0 * lobatto_nodes(k) - 1.0, k)  # vander[i, j] = P_j(x_i)
-    return np.linalg.inv(vander)
+    P = legendre_values(alpha, n + 1)
+    columns = [alpha] + [(P[:, j + 1] - P[:, j - 1]) / (2 * (2 * j + 1)) for j in range(1, n)]
+    return jnp.stack(columns, axis=-1)
 
 
-def lagrange_values(alpha, k):
-    """M_J(alpha_l) for the degree-k Lagrange basis; shape ``(m, k + 1)``, traceable."""
-    coeffs = jnp.asarray(lagrange_in_legendre(k), dtype=jnp.result_type(alpha))
-    return legendre_values(alpha, k + 1) @ coeffs
-
-
-def lagrange_values_np(alpha, k):
-    """NumPy version of ``lagrange_values`` for constant points (also outside [0, 1])."""
-    return npleg.legvander(2.0 * np.asarray(alpha, dtype=float) - 1.0, k) @ lagrange_in_legendre(k)
+def test_scale(n):
+    """2i + 1 for i < n: (2i + 1) int_0^1 P_i P_j = delta_ij."""
+    return np.arange(n) * 2.0 + 1.0
 
 
 @functools.lru_cache(maxsize=None)
-def stiffness(n_test, k):
-    """K[I, J] = int_0^1 P_I(2a - 1) M_J'(a) da, I < n_test, J <= k; exact (Gauss, k + 1 points).
+def derivative_matrix(n):
+    """D[i, j] = (2i + 1) int_0^1 P_i(2a - 1) d/da P_j(2a - 1) da, exact integers.
 
-    # exact: the integrand has degree n_test - 1 + k - 1 <= 2k - 1.
+    int_{-1}^{1} P_i P_j' dx is 2 when j > i and i + j is odd, else 0.
     """
-    x, w = npleg.leggauss(k + 1)
-    test = npleg.legvander(x, n_test - 1)
-    d_coeffs = np.stack([2.0 * npleg.legder(c) for c in lagrange_in_legendre(k).T], axis=1)
-    d_values = npleg.legvander(x, max(k - 1, 0)) @ d_coeffs if k > 0 else np.zeros((len(x), 1))
-    return (test * (w / 2.0)[:, None]).T @ d_values
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    return np.where((j > i) & ((i + j) % 2 == 1), 2.0 * (2 * i + 1), 0.0)
 
 
 @functools.lru_cache(maxsize=None)
-def extrapolation(k):
-    """E[i, J] = M_J(1 + alpha_i): the previous element's polynomial at this element's nodes."""
-    return lagrange_values_np(1.0 + lobatto_nodes(k), k)
+def shift_matrix(n, subtract_end=False):
+    """T[i, j] = (2i + 1) int_0^1 P_i(2a - 1) (P_j(2a + 1) - s_j) da: a Legendre series continued
+    one element ahead, re-expanded on [0, 1] (s_j = P_j(1) = 1 if ``subtract_end`` else 0).
+
+    # exact: Gauss with n points integrates the degree 2n - 2 products
+    """
+    x, w = npleg.leggauss(n)
+    ahead = npleg.legvander(x + 2.0, n - 1) - (1.0 if subtract_end else 0.0)
+    here = npleg.legvander(x, n - 1)
+    return test_scale(n)[:, None] * ((here * (w / 2.0)[:, None]).T @ ahead)

@@ -1,10 +1,12 @@
 """Continuous and discontinuous Galerkin methods in time [GBS, Section 3].
 
 Both act on ``z = (q, p)`` with ``z' = h J DH(z)``, ``J = [[0, I], [-I, 0]]``, so
-``q' = h dH/dp`` and ``p' = -h dH/dq`` [GBS, eqs. (5), (9)]. Trial functions use the
-Lagrange basis on Gauss-Lobatto nodes (0 and 1 among them); test functions are
-Legendre polynomials. Any basis of the test space gives the same element equations,
-and Newton's method is invariant under that choice.
+``q' = h dH/dp`` and ``p' = -h dH/dq`` [GBS, eqs. (5), (9)]. The element unknowns are
+Legendre (modal) coefficients of ``z - z_0`` or of ``z'``, and the test functions are
+(2i + 1) P_i(2 alpha - 1). These span the paper's trial and test spaces, so the element
+equations are those of eqs. (16) and (19) (Newton's method is invariant under the change
+of basis), while every polynomial matrix is an exact integer matrix (see ``_basis``) and the
+unknowns are increments, accurate relative to themselves.
 """
 
 import dataclasses
@@ -29,23 +31,29 @@ def symplectic_field(H):
     return field
 
 
-def _check_degree(cls, k, least):
+def check_degree(cls, k, least):
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < least:
         raise ValueError(f"{cls} needs an integer degree k >= {least}, got {k!r}.")
 
 
-def _check_rule(cls, quadrature):
+def check_rule(cls, quadrature):
     if not isinstance(quadrature, QuadratureRule):
         raise TypeError(f"{cls} needs a QuadratureRule, got {type(quadrature).__name__}.")
 
 
-def _weighted_field(H, quadrature, Z_nodes, k, n_test, dtype):
-    """sum_l w_l psi_I(alpha_l) J DH(z^h(alpha_l)): the quadrature of eqs. (16) and (19)."""
+def tested_field(H, quadrature, z0, C, antiderivative, n_test):
+    """(2i + 1) sum_l w_l P_i(alpha_l) J DH(z^h(alpha_l)), i < n_test: the DH integrals of eqs. (16), (19).
+
+    ``z^h = z0 + basis(alpha) @ C`` with ``basis`` the Legendre antiderivatives (cG) or the
+    Legendre polynomials themselves (dG).
+    """
+    dtype = C.dtype
     alpha = jnp.asarray(quadrature.points, dtype)
     w = jnp.asarray(quadrature.weights, dtype)
-    z_at_points = _basis.lagrange_values(alpha, k) @ Z_nodes
-    field = jax.vmap(symplectic_field(H))(z_at_points)
-    return _basis.legendre_values(alpha, n_test).T @ (w[:, None] * field)
+    basis = _basis.legendre_antiderivatives(alpha, len(C)) if antiderivative else _basis.legendre_values(alpha, len(C))
+    field = jax.vmap(symplectic_field(H))(z0[None, :] + basis @ C)
+    scale = jnp.asarray(_basis.test_scale(n_test), dtype)
+    return scale[:, None] * (_basis.legendre_values(alpha, n_test).T @ (w[:, None] * field))
 
 
 @jax.tree_util.register_dataclass
@@ -54,10 +62,12 @@ class CG:
     """Continuous Galerkin cG(k) in time [GBS, eq. (16)].
 
     Trial functions are continuous, of degree k on each element (z_1 = z_0, eq. (13));
-    test functions have degree k - 1. The rule is applied to the integrals that
-    contain DH; all purely polynomial integrals are exact. With exact quadrature it
-    conserves any autonomous H (Theorem 3.1); with k Gauss points it is k-stage
-    Gauss-Legendre collocation.
+    test functions have degree k - 1. The rule is applied to the integrals that contain DH;
+    all purely polynomial integrals are exact. With exact quadrature it conserves any
+    autonomous H (Theorem 3.1); with k Gauss points it is k-stage Gauss collocation.
+
+    Unknowns: ``C`` of shape ``(k, 2d)`` with ``(z^h)' = sum_j C_j P_j(2 alpha - 1)``, so
+    ``z^h(alpha) = z_0 + sum_j C_j A_j(alpha)`` and ``z_1 = z_0 + C_0``.
 
     Args:
         k: degree, k >= 1. Static: a new k means a new compilation.
@@ -68,31 +78,24 @@ class CG:
     quadrature: QuadratureRule
 
     def __post_init__(self):
-        _check_degree("CG", self.k, 1)
-        _check_rule("CG", self.quadrature)
+        check_degree("CG", self.k, 1)
+        check_rule("CG", self.quadrature)
 
     def initial_guess(self, q0, p0, previous=None):
-        """Z0, shape ``(k, 2d)``: constant, or the previous element's polynomial extrapolated.
-
-        Args:
-            previous: ``(q, p, Z)`` of the previous element, or None.
-        """
-        z0 = jnp.concatenate([q0, p0])
+        """Zero (the constant state), or the previous element's derivative continued."""
         if previous is None:
-            return jnp.tile(z0, (self.k, 1))
-        q, p, Z = previous
-        nodes = jnp.concatenate([jnp.concatenate([q, p])[None], Z])
-        return jnp.asarray(_basis.extrapolation(self.k)[1:], Z.dtype) @ nodes
+            return jnp.zeros((self.k, 2 * q0.shape[0]), q0.dtype)
+        C = previous[2]
+        return jnp.asarray(_basis.shift_matrix(self.k), C.dtype) @ C
 
-    def residual(self, H, q0, p0, Z, h):
-        """R(Z) = 0 is eq. (16) for the nodal values z_2 ... z_{k+1}; shape ``(k, 2d)``."""
-        nodes = jnp.concatenate([jnp.concatenate([q0, p0])[None], Z])
-        K = jnp.asarray(_basis.stiffness(self.k, self.k), Z.dtype)
-        return K @ nodes - h * _weighted_field(H, self.quadrature, nodes, self.k, self.k, Z.dtype)
+    def residual(self, H, q0, p0, C, h):
+        """R(C) = 0 is eq. (16) tested with (2i + 1) P_i, i < k: C_i - h (2i+1) Q[P_i J DH(z^h)]."""
+        z0 = jnp.concatenate([q0, p0])
+        return C - h * tested_field(H, self.quadrature, z0, C, True, self.k)
 
-    def end_state(self, H, q0, p0, Z, h):
-        """(q1, p1) = z_{k+1}, the value at alpha = 1."""
-        return tuple(jnp.split(Z[-1], 2))
+    def end_state(self, H, q0, p0, C, h):
+        """(q1, p1) = z^h(1) = z_0 + C_0."""
+        return tuple(jnp.split(jnp.concatenate([q0, p0]) + C[0], 2))
 
 
 @jax.tree_util.register_dataclass
@@ -100,9 +103,11 @@ class CG:
 class DG:
     """Discontinuous Galerkin dG(k) in time [GBS, eq. (19)].
 
-    Trial and test functions have degree k; the jump term ``J dz_1 . (z_1 - z_0)``
-    imposes the initial value weakly (eq. (18)). With exact quadrature the energy of a
-    quadratic H decays (Prop. 3.1); with k + 1 right Radau points it is Radau IIA.
+    Trial and test functions have degree k; the jump term ``J dz_1 . (z^h(0) - z_0)`` imposes
+    the initial value weakly (eq. (18)). With exact quadrature the energy of a quadratic H
+    decays (Prop. 3.1); with k + 1 right Radau points it is Radau IIA.
+
+    Unknowns: ``a`` of shape ``(k + 1, 2d)`` with ``z^h(alpha) = z_0 + sum_j a_j P_j(2 alpha - 1)``.
 
     Args:
         k: degree, k >= 0. Static.
@@ -113,27 +118,26 @@ class DG:
     quadrature: QuadratureRule
 
     def __post_init__(self):
-        _check_degree("DG", self.k, 0)
-        _check_rule("DG", self.quadrature)
+        check_degree("DG", self.k, 0)
+        check_rule("DG", self.quadrature)
 
     def initial_guess(self, q0, p0, previous=None):
-        """Z0, shape ``(k + 1, 2d)``: constant, or the previous element extrapolated."""
+        """Zero (the constant state), or the previous element's polynomial continued."""
         if previous is None:
-            return jnp.tile(jnp.concatenate([q0, p0]), (self.k + 1, 1))
-        Z = previous[2]
-        return jnp.asarray(_basis.extrapolation(self.k), Z.dtype) @ Z
+            return jnp.zeros((self.k + 1, 2 * q0.shape[0]), q0.dtype)
+        a = previous[2]
+        return jnp.asarray(_basis.shift_matrix(self.k + 1, subtract_end=True), a.dtype) @ a
 
-    def residual(self, H, q0, p0, Z, h):
-        """R(Z) = 0 is eq. (19) for the nodal values z_1 ... z_{k+1}; shape ``(k + 1, 2d)``."""
-        k, dtype = self.k, Z.dtype
-        K = jnp.asarray(_basis.stiffness(k + 1, k), dtype)
-        at_zero = jnp.asarray(_basis.lagrange_values_np([0.0], k)[0], dtype)
-        test_at_zero = jnp.asarray((-1.0) ** np.arange(k + 1), dtype)  # P_I(-1)
-        jump = at_zero @ Z - jnp.concatenate([q0, p0])
-        weighted = _weighted_field(H, self.quadrature, Z, k, k + 1, dtype)
-        return K @ Z - h * weighted + test_at_zero[:, None] * jump[None, :]
+    def residual(self, H, q0, p0, a, h):
+        """R(a) = 0 is eq. (19) tested with (2i + 1) P_i, i <= k."""
+        n, dtype = self.k + 1, a.dtype
+        signs = jnp.asarray((-1.0) ** np.arange(n), dtype)  # P_j(-1)
+        jump = signs @ a  # z^h(0) - z_0
+        derivative = jnp.asarray(_basis.derivative_matrix(n), dtype) @ a
+        tested_jump = jnp.asarray(_basis.test_scale(n), dtype) * signs
+        z0 = jnp.concatenate([q0, p0])
+        return derivative + tested_jump[:, None] * jump[None, :] - h * tested_field(H, self.quadrature, z0, a, False, n)
 
-    def end_state(self, H, q0, p0, Z, h):
-        """(q1, p1) = z^h(1)."""
-        at_one = jnp.asarray(_basis.lagrange_values_np([1.0], self.k)[0], Z.dtype)
-        return tuple(jnp.split(at_one @ Z, 2))
+    def end_state(self, H, q0, p0, a, h):
+        """(q1, p1) = z^h(1) = z_0 + sum_j a_j."""
+        return tuple(jnp.split(jnp.concatenate([q0, p0]) + jnp.sum(a, axis=0), 2))

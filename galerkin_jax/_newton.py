@@ -31,13 +31,14 @@ def status_message(status):
     return MESSAGES[Status(int(status))]
 
 
-def newton(residual, Z0, max_iterations):
+def newton(residual, Z0, max_iterations, scale=0.0):
     """Newton on ``residual(Z) = 0`` in a ``lax.while_loop``; never raises.
 
-    It stops at the round-off floor ``tol = 10 eps (1 + max|Z|)``: when the update is
-    below ``tol``; when convergence is quadratic (rate ``r = |dZ_k| / |dZ_{k-1}| <= 0.1``)
+    It stops at the round-off floor ``tol = 10 eps (scale + max|Z|)``, where ``scale`` is
+    the size of the state the unknowns are added to (the unknowns are increments): when
+    the update is below ``tol``; when convergence is quadratic (rate ``r = |dZ_k| / |dZ_{k-1}| <= 0.1``)
     and the error left, ``~ |dZ_k| r^2``, is below ``tol``; or when the updates have
-    stopped shrinking while below ``sqrt(eps) (1 + max|Z|)`` (ill-conditioned systems,
+    stopped shrinking while below ``sqrt(eps) (scale + max|Z|)`` (ill-conditioned systems,
     e.g. huge h omega, cannot reach ``tol``).
 
     Returns:
@@ -59,7 +60,7 @@ def newton(residual, Z0, max_iterations):
         jac = jax.vmap(jvp, out_axes=1)(jnp.eye(z.size, dtype=dtype))
         dz = jnp.linalg.solve(jac, r)
         z = z - dz
-        size = 1.0 + jnp.max(jnp.abs(z))
+        size = scale + jnp.max(jnp.abs(z)) + jnp.finfo(dtype).tiny
         step = jnp.max(jnp.abs(dz))
         finite = jnp.all(jnp.isfinite(z))
         tol = 10.0 * eps * size
@@ -90,19 +91,21 @@ def newton(residual, Z0, max_iterations):
     return z.reshape(shape), it, status
 
 
-def solve_implicit(residual, Z0, max_iterations):
+def solve_implicit(residual, Z0, max_iterations, scale=0.0):
     """Root of ``residual`` near ``Z0``; derivatives by the implicit function theorem.
 
     ``jax.lax.custom_root`` differentiates the converged root through
     ``dZ = -(dR/dZ)^{-1} dR/dtheta`` for every value closed over by ``residual``
     (q0, p0, h, quadrature, args), never through the Newton iterations.
 
+    Args:
+        scale: size of the state the unknowns are increments of (sets the round-off floor).
     Returns:
         ``(Z, iterations, status)``, both counts int32.
     """
 
     def solve(f, z0):
-        Z, it, status = newton(f, z0, max_iterations)
+        Z, it, status = newton(f, z0, max_iterations, scale)
         # aux travels as float: integer aux breaks custom_root's JVP (jax-ml/jax#24295)
         return Z, (it.astype(Z.dtype), status.astype(Z.dtype))
 
