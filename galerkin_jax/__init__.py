@@ -12,7 +12,9 @@ from ._integrate import (
     integrate as integrate,
     step as step,
 )
+from ._midpoint import DiscreteGradient as DiscreteGradient, ModifiedMidpoint as ModifiedMidpoint
 from ._newton import Status as Status, status_message as status_message
+from ._variational import GalerkinVI as GalerkinVI, LagrangianVI as LagrangianVI
 from ._quadrature import (
     QuadratureRule as QuadratureRule,
     gauss_legendre as gauss_legendre,
@@ -25,6 +27,10 @@ from ._quadrature import (
 __all__ = [
     "CG",
     "DG",
+    "DiscreteGradient",
+    "GalerkinVI",
+    "LagrangianVI",
+    "ModifiedMidpoint",
     "QuadratureRule",
     "Solution",
     "Status",

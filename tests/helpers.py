@@ -56,3 +56,22 @@ def fitted_order(hs, errs, floor=1e-12):
     if keep.sum() < 2:
         raise AssertionError(f"fewer than two errors above the floor {floor}: {errs}")
     return np.polyfit(np.log(hs[keep]), np.log(errs[keep]), 1)[0]
+
+
+def pendulum():
+    H = lambda q, p: 0.5 * (p @ p) - jnp.cos(q[0])
+    return H, jnp.array([1.2]), jnp.array([0.3])
+
+
+def non_separable():
+    """A coupled, non-separable H (no Lagrangian of the form T(qdot) - U(q))."""
+    H = lambda q, p: 0.5 * (1 + 0.3 * q[0] ** 2) * p[0] ** 2 + 0.5 * p[1] ** 2 + 0.25 * p[0] * p[1] * q[1] + 0.25 * q[0] ** 4 + 0.5 * q[1] ** 2
+    return H, jnp.array([0.8, -0.4]), jnp.array([0.2, 0.5])
+
+
+def symplecticity_defect(A):
+    """max |A^T J A - J| for a one-step Jacobian in the ordering z = (q, p)."""
+    d = A.shape[0] // 2
+    J = np.block([[np.zeros((d, d)), np.eye(d)], [-np.eye(d), np.zeros((d, d))]])
+    A = np.asarray(A)
+    return np.abs(A.T @ J @ A - J).max()

@@ -1,0 +1,146 @@
+"""Galerkin and Lagrangian variational integrators [Tang, Section 2].
+
+Both use the Legendre polynomials P_i(2 tau - 1) (Tang's l_i = sqrt(2i + 1) P_i, eq. (2.1))
+and their antiderivatives A_i(tau) = int_0^tau P_i; purely polynomial integrals are exact,
+the given rule evaluates the integrals of f = dH/dp, g = -dH/dq (or of dL/dq, dL/dqdot).
+
+Misprint: eq. (2.35) prints A_{tau,sigma} = sum_i int_0^tau l_i(x) dx l_j(sigma), with a
+free index j. Inserting (2.26) into the integral of (2.25) gives l_i(sigma):
+A_{tau,sigma} = sum_i int_0^tau l_i(x) dx l_i(sigma) (as in (2.27) and (3.3)).
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _basis
+from ._galerkin import check_degree, check_rule
+from ._quadrature import QuadratureRule
+
+
+def _rule_arrays(rule, dtype):
+    return jnp.asarray(rule.points, dtype), jnp.asarray(rule.weights, dtype)
+
+
+def _continued(C, s):
+    """Legendre coefficients of a degree s - 1 series continued one element ahead."""
+    return jnp.asarray(_basis.shift_matrix(s), C.dtype) @ C
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class GalerkinVI:
+    """Galerkin variational integrator [Tang, eqs. (2.21)-(2.22)], as the continuous-stage
+    partitioned Runge-Kutta method (2.34) with kernels
+
+        A_{tau,sigma} = sum_i (2i+1) A_i(tau) P_i(sigma),
+        Ahat_{tau,sigma} = 1 - sum_i (2i+1) A_i(sigma) P_i(tau),   B = Bhat = 1   (i < s).
+
+    Q in P^s is continuous (numerical flux Qhat_n = Q(t_n^+)); P in P^{s-1} jumps at both
+    ends, with fluxes Phat_n = p_n and Phat_{n+1} = p_n + h int g. Symplectic and symmetric
+    for any rule, of order 2s with exact enough quadrature (Corollary 2.1).
+
+    Unknowns, shape ``(2s, d)``: ``c`` with Q' = sum_i c_i P_i (eq. (2.25)), and ``mu`` with
+    P = p_n + sum_i mu_i P_i (eq. (2.31), lambda_i shifted by the flux).
+
+    Args:
+        s: degree of Q, s >= 1. Static.
+        quadrature: rule on [0, 1]; may be traced, vmapped and differentiated.
+    """
+
+    s: int = dataclasses.field(metadata=dict(static=True))
+    quadrature: QuadratureRule
+
+    def __post_init__(self):
+        check_degree("GalerkinVI", self.s, 1)
+        check_rule("GalerkinVI", self.quadrature)
+
+    def initial_guess(self, q0, p0, previous=None):
+        if previous is None:
+            return jnp.zeros((2 * self.s, q0.shape[0]), q0.dtype)
+        _, p_prev, Z = previous
+        c, mu = jnp.split(Z, 2)
+        mu = _continued(mu, self.s).at[0].add(p_prev - p0)  # P_prev(1 + tau) - p_n
+        return jnp.concatenate([_continued(c, self.s), mu])
+
+    def _stages(self, H, q0, p0, Z):
+        s, dtype = self.s, Z.dtype
+        alpha, w = _rule_arrays(self.quadrature, dtype)
+        c, mu = jnp.split(Z, 2)
+        P_at = _basis.legendre_values(alpha, s)
+        A_at = _basis.legendre_antiderivatives(alpha, s)
+        Q, P = q0[None, :] + A_at @ c, p0[None, :] + P_at @ mu
+        dHdq, dHdp = jax.vmap(jax.grad(H, argnums=(0, 1)))(Q, P)
+        return w, P_at, A_at, dHdp, -dHdq
+
+    def residual(self, H, q0, p0, Z, h):
+        """c_i = (2i+1) h Q[f P_i] (2.26); mu_i = (2i+1) h Q[g (delta_i0 - A_i)] (2.32)."""
+        w, P_at, A_at, f, g = self._stages(H, q0, p0, Z)
+        scale = jnp.asarray(_basis.test_scale(self.s), Z.dtype)[:, None]
+        first = jnp.asarray(np.eye(self.s)[0], Z.dtype)
+        c, mu = jnp.split(Z, 2)
+        r_c = c - h * scale * (P_at.T @ (w[:, None] * f))
+        r_mu = mu - h * scale * ((first[None, :] - A_at).T @ (w[:, None] * g))
+        return jnp.concatenate([r_c, r_mu])
+
+    def end_state(self, H, q0, p0, Z, h):
+        """Qhat_{n+1} = q_n + c_0 (2.29), Phat_{n+1} = p_n + h int g (2.32)."""
+        w, _, _, _, g = self._stages(H, q0, p0, Z)
+        return q0 + Z[0], p0 + h * (w @ g)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class LagrangianVI:
+    """Lagrangian variational integrator from the discrete Hamilton principle [Tang, eqs. (2.16)-(2.17)].
+
+    The function given to ``integrate`` is the Lagrangian ``L(q, qdot)``; p0 is the initial
+    momentum and ``Solution.p`` the discrete momenta p_n = -dL_h/dx (eq. (2.5)). Qdot is a
+    polynomial of degree s - 1, Qdot = sum_j v_j P_j (eq. (2.7)), Q = q_n + h sum_j v_j A_j
+    (eq. (2.9)); P = dL/dqdot(Q, Qdot) need not be a polynomial (Remark 2.1), so every
+    integral uses the rule. For L = qdot^T M qdot / 2 - U(q) it equals ``GalerkinVI``
+    (Section 3).
+
+    Unknowns, shape ``(s, d)``: the coefficients ``v``.
+
+    Args:
+        s: degree of Q, s >= 1. Static.
+        quadrature: rule on [0, 1]; may be traced, vmapped and differentiated.
+    """
+
+    s: int = dataclasses.field(metadata=dict(static=True))
+    quadrature: QuadratureRule
+
+    def __post_init__(self):
+        check_degree("LagrangianVI", self.s, 1)
+        check_rule("LagrangianVI", self.quadrature)
+
+    def initial_guess(self, q0, p0, previous=None):
+        if previous is None:
+            return jnp.zeros((self.s, q0.shape[0]), q0.dtype)
+        v = previous[2]
+        return _continued(v, self.s)
+
+    def _stages(self, L, q0, v, h):
+        alpha, w = _rule_arrays(self.quadrature, v.dtype)
+        P_at = _basis.legendre_values(alpha, self.s)
+        A_at = _basis.legendre_antiderivatives(alpha, self.s)
+        Q, Qdot = q0[None, :] + h * (A_at @ v), P_at @ v
+        Pdot, P = jax.vmap(jax.grad(L, argnums=(0, 1)))(Q, Qdot)  # eq. (2.12)
+        return w, P_at, A_at, P, Pdot
+
+    def residual(self, L, q0, p0, v, h):
+        """(2i+1) [Q[P P_i] - p_n delta_i0 - h Q[(delta_i0 - A_i) Pdot]] = 0, eq. (2.16a)."""
+        w, P_at, A_at, P, Pdot = self._stages(L, q0, v, h)
+        scale = jnp.asarray(_basis.test_scale(self.s), v.dtype)[:, None]
+        first = jnp.asarray(np.eye(self.s)[0], v.dtype)
+        momentum = P_at.T @ (w[:, None] * P) - first[:, None] * p0[None, :]
+        impulse = (first[None, :] - A_at).T @ (w[:, None] * Pdot)
+        return scale * (momentum - h * impulse)
+
+    def end_state(self, L, q0, p0, v, h):
+        """q_{n+1} = q_n + h int Qdot, p_{n+1} = p_n + h int Pdot, eq. (2.16b)."""
+        w, _, _, _, Pdot = self._stages(L, q0, v, h)
+        return q0 + h * v[0], p0 + h * (w @ Pdot)
