@@ -14,6 +14,14 @@ from ._integrate import (
 )
 from ._midpoint import DiscreteGradient as DiscreteGradient, ModifiedMidpoint as ModifiedMidpoint
 from ._newton import Status as Status, status_message as status_message
+from ._sweep import (
+    Configs as Configs,
+    SweepResult as SweepResult,
+    grid as grid,
+    pad_rule as pad_rule,
+    stack_methods as stack_methods,
+    sweep as sweep,
+)
 from ._variational import GalerkinVI as GalerkinVI, LagrangianVI as LagrangianVI
 from ._quadrature import (
     QuadratureRule as QuadratureRule,
@@ -26,6 +34,7 @@ from ._quadrature import (
 
 __all__ = [
     "CG",
+    "Configs",
     "DG",
     "DiscreteGradient",
     "GalerkinVI",
@@ -34,13 +43,18 @@ __all__ = [
     "QuadratureRule",
     "Solution",
     "Status",
+    "SweepResult",
     "amplification_matrix",
     "gauss_legendre",
     "gauss_lobatto",
     "gauss_radau",
+    "grid",
     "integrate",
     "midpoint",
+    "pad_rule",
+    "stack_methods",
     "status_message",
     "step",
+    "sweep",
     "trapezoid",
 ]

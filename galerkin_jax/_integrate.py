@@ -138,8 +138,8 @@ def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, observ
           checkpoint=False):
     """Chain ``n_blocks * block_size`` elements by a nested ``lax.scan``.
 
-    After every element ``acc = observe(acc, q1, p1)`` folds the new state into a
-    user accumulator (diagnostics kept in the carry, no trajectory stored).
+    After every element ``acc = observe(acc, q1, p1, iterations)`` folds the new state
+    into a user accumulator (diagnostics kept in the carry, no trajectory stored).
     ``checkpoint=True`` rematerialises each block in reverse mode, so a gradient stores
     one carry per block instead of the residuals of every element.
 
@@ -156,7 +156,7 @@ def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, observ
         status = jnp.where(status == Status.SUCCESS, s, status)
         failed = status != Status.SUCCESS
         q1, p1 = jnp.where(failed, jnp.nan, q1), jnp.where(failed, jnp.nan, p1)
-        acc = acc if observe is None else observe(acc, q1, p1)
+        acc = acc if observe is None else observe(acc, q1, p1, iterations)
         return (q1, p1, (q, p, Z), status, total + iterations, jnp.maximum(most, iterations), acc), None
 
     def block(carry, _):

@@ -1,0 +1,240 @@
+"""Batched parameter sweeps: one scene over many configurations in one vmapped, jitted call.
+
+Diagnostics are folded into the scan carry (``march``'s observer), so a sweep stores no
+trajectory unless ``save_every`` asks for one. Each configuration has its own status:
+a failed one turns NaN and stops costing Newton iterations; the others are untouched.
+"""
+
+import dataclasses
+import functools
+import itertools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from . import _checks
+from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, Solution, bind_args, march
+from ._quadrature import QuadratureRule
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Configs:
+    """Configurations of a sweep: every leaf has a leading batch axis of size B.
+
+    Attributes:
+        method: a method pytree with stacked quadrature arrays (see ``stack_methods``).
+        q0, p0: shape ``(B, d)``.
+        h: shape ``(B,)``.
+        args: ``None`` or a pytree whose leaves have a leading axis B.
+    """
+
+    method: Any
+    q0: jax.Array
+    p0: jax.Array
+    h: jax.Array
+    args: Any = None
+
+    @property
+    def size(self):
+        return self.h.shape[0]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SweepResult:
+    """Per-configuration diagnostics, each with a leading axis B.
+
+    Attributes:
+        energy_error: max_n |H_n - H_0| / |H_0| (absolute where H_0 = 0).
+        invariant_errors: name -> max_n max_i |I_n - I_0|_i / max_i |I_0|_i (absolute where I_0 = 0).
+        final_error: max |(q_N, p_N) - reference| or None.
+        q, p: the final state, ``(B, d)``.
+        status: ``Status`` codes; NaN diagnostics go with a nonzero status.
+        num_newton_iterations, max_newton_iterations: total and largest per element.
+        solution: a batched ``Solution`` when ``save_every`` was given, else None.
+    """
+
+    energy_error: jax.Array
+    invariant_errors: dict
+    final_error: Any
+    q: jax.Array
+    p: jax.Array
+    status: jax.Array
+    num_newton_iterations: jax.Array
+    max_newton_iterations: jax.Array
+    solution: Any = None
+
+
+def pad_rule(rule, n):
+    """The rule with zero-weight points at 1/2 appended up to ``n`` points; integrates the same."""
+    extra = n - rule.num_points
+    if extra < 0:
+        raise ValueError(f"pad_rule: the rule has {rule.num_points} points, more than n = {n}.")
+    points = jnp.concatenate([jnp.asarray(rule.points), jnp.full(extra, 0.5, jnp.result_type(rule.points))])
+    weights = jnp.concatenate([jnp.asarray(rule.weights), jnp.zeros(extra, jnp.result_type(rule.weights))])
+    return QuadratureRule(points, weights)
+
+
+def _is_rule(x):
+    return isinstance(x, QuadratureRule)
+
+
+def stack_methods(methods):
+    """Stack methods of one kind and degree along a new leading axis, padding their rules
+    to a common point count with ``pad_rule`` so that rules of any size share one batch."""
+    methods = list(methods)
+    rules = [r for m in methods for r in jax.tree_util.tree_leaves(m, is_leaf=_is_rule) if _is_rule(r)]
+    n = max((r.num_points for r in rules), default=0)
+    padded = [jax.tree.map(lambda x: pad_rule(x, n) if _is_rule(x) else x, m, is_leaf=_is_rule) for m in methods]
+    structures = {jax.tree.structure(m) for m in padded}
+    if len(structures) != 1:
+        raise ValueError("stack_methods: methods must be of one kind and degree (static fields equal).")
+    return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *padded)
+
+
+def grid(*, method, h, state, args=None):
+    """The cartesian product of the given axes as ``Configs`` (order: method, h, state, args).
+
+    Args:
+        method: sequence of methods (rules of any size; see ``stack_methods``).
+        h: sequence of step sizes.
+        state: sequence of ``(q0, p0)`` pairs.
+        args: None, or a sequence of ``args`` pytrees.
+    """
+    args_axis = [None] if args is None else list(args)
+    rows = list(itertools.product(range(len(method)), list(h), list(state), range(len(args_axis))))
+    stacked_args = None
+    if args is not None:
+        stacked_args = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *[args_axis[r[3]] for r in rows])
+    return Configs(
+        method=stack_methods([method[r[0]] for r in rows]),
+        q0=jnp.stack([jnp.asarray(r[2][0]) for r in rows]),
+        p0=jnp.stack([jnp.asarray(r[2][1]) for r in rows]),
+        h=jnp.asarray([r[1] for r in rows]),
+        args=stacked_args,
+    )
+
+
+def _relative_change(value, initial):
+    scale = jnp.max(jnp.abs(initial))
+    return jnp.max(jnp.abs(value - initial)) / jnp.where(scale > 0, scale, 1.0)
+
+
+def _one(H, invariants, n_steps, save_every, max_iterations, method, q0, p0, h, args, reference):
+    fn = bind_args(H, args)
+    initial = (fn(q0, p0), tuple(I(q0, p0) for I in invariants.values()))
+
+    def observe(acc, q, p, _):
+        energy, others = acc
+        energy = jnp.fmax(energy, _relative_change(fn(q, p), initial[0]))
+        others = tuple(jnp.fmax(e, _relative_change(I(q, p), I0)) for e, I, I0 in zip(others, invariants.values(), initial[1]))
+        # fmax ignores NaN: a failed run is flagged by its status and made NaN below
+        return energy, others
+
+    zero = jnp.zeros((), q0.dtype)
+    block = save_every or n_steps
+    final, (qs, ps) = march(
+        method, fn, q0, p0, h, n_blocks=n_steps // block, block_size=block, max_iterations=max_iterations,
+        observe=observe, acc0=(zero, tuple(zero for _ in invariants)),
+    )
+    failed = final["status"] != 0
+    nan_if_failed = lambda x: jnp.where(failed, jnp.nan, x)
+    energy, others = final["acc"]
+    final_error = None
+    if reference is not None:
+        final_error = jnp.max(jnp.abs(jnp.concatenate([final["q"] - reference[0], final["p"] - reference[1]])))
+    solution = None
+    if save_every:
+        solution = Solution(
+            t=jnp.arange(n_steps // block + 1, dtype=q0.dtype) * (block * h),
+            q=jnp.concatenate([q0[None], qs]), p=jnp.concatenate([p0[None], ps]),
+            status=final["status"], stats={},
+        )
+    return SweepResult(
+        energy_error=nan_if_failed(energy),
+        invariant_errors={name: nan_if_failed(e) for name, e in zip(invariants, others)},
+        final_error=final_error,
+        q=final["q"], p=final["p"], status=final["status"],
+        num_newton_iterations=final["total"], max_newton_iterations=final["most"],
+        solution=solution,
+    )
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
+def _run(H, invariants, n_steps, save_every, max_iterations, configs, reference):
+    one = functools.partial(_one, H, dict(invariants), n_steps, save_every, max_iterations)
+    return jax.vmap(one)(configs.method, configs.q0, configs.p0, configs.h, configs.args, reference)
+
+
+def _check(H, configs, n_steps, save_every, invariants, reference):
+    _checks.check_function(H)
+    if not isinstance(configs, Configs):
+        raise TypeError(f"configs must be gj.Configs (see gj.grid), got {type(configs).__name__}.")
+    B = configs.size
+    if configs.q0.ndim != 2 or configs.q0.shape != configs.p0.shape or configs.q0.shape[0] != B:
+        raise ValueError(f"configs: q0 and p0 need shape (B, d) with B = {B}, got {configs.q0.shape}, {configs.p0.shape}.")
+    for leaf in jax.tree_util.tree_leaves((configs.method, configs.args)):
+        if jnp.ndim(leaf) == 0 or jnp.shape(leaf)[0] != B:
+            raise ValueError(f"configs: every method and args leaf needs a leading axis of size B = {B}.")
+    if not isinstance(configs.h, jax.core.Tracer) and not np.all(np.asarray(configs.h) > 0):
+        raise ValueError("configs: every h must be finite and > 0.")
+    _checks.check_counts(n_steps, save_every or n_steps or 1)
+    if n_steps < 1:
+        raise ValueError("n_steps must be >= 1.")
+    if not all(callable(I) for I in invariants.values()):
+        raise TypeError("invariants must map names to functions I(q, p).")
+    if reference is not None and (len(reference) != 2 or jnp.shape(reference[0]) != configs.q0.shape):
+        raise ValueError(f"reference must be (q_ref, p_ref), each of shape {configs.q0.shape}.")
+
+
+def _shard(tree, devices):
+    """Pad the batch axis to a multiple of the device count and place it along a 1-D mesh."""
+    mesh = Mesh(np.asarray(devices), ("batch",))
+    sharding = NamedSharding(mesh, PartitionSpec("batch"))
+    size = jax.tree_util.tree_leaves(tree)[0].shape[0]
+    pad = (-size) % len(devices)
+    # padding repeats the last configuration: valid values, discarded afterwards
+    padded = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), tree)
+    return jax.device_put(padded, sharding)
+
+
+def sweep(
+    H,
+    configs,
+    *,
+    n_steps,
+    invariants=None,
+    reference=None,
+    save_every=None,
+    max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
+    devices=None,
+):
+    """Run every configuration of ``configs`` for ``n_steps`` elements in one compiled call.
+
+    Args:
+        H: ``H(q, p)`` or ``H(q, p, args)``.
+        configs: ``Configs`` with batch size B (e.g. from ``grid``).
+        n_steps: elements per configuration. Static.
+        invariants: ``{name: I(q, p)}`` whose relative change is tracked (e.g. angular momentum).
+        reference: ``(q_ref, p_ref)`` of shape ``(B, d)`` for ``final_error``.
+        save_every: store a trajectory with this stride (``SweepResult.solution``); default none.
+        devices: shard the batch over these devices (e.g. ``jax.devices()``); results equal
+            the unsharded run. Several hosts: call ``jax.distributed.initialize()`` first and
+            pass ``jax.devices()`` (all global devices).
+    Returns:
+        ``SweepResult`` with a leading axis B on every field.
+    """
+    invariants = dict(invariants or {})
+    _check(H, configs, n_steps, save_every, invariants, reference)
+    reference = None if reference is None else tuple(jnp.asarray(r) for r in reference)
+    inputs = (configs, reference)
+    if devices is not None:
+        inputs = _shard(inputs, devices)
+    result = _run(H, tuple(invariants.items()), n_steps, save_every, max_newton_iterations, *inputs)
+    if devices is not None:
+        result = jax.tree.map(lambda x: x[: configs.size], result)
+    return result

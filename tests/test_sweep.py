@@ -1,0 +1,132 @@
+"""Batched sweeps: equal to one-by-one runs, padding-invariant, failure-isolated, shardable."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import galerkin_jax as gj
+import helpers
+
+H, Q0, P0 = helpers.kepler(0.5)
+ANGULAR = {"L": lambda q, p: q[0] * p[1] - q[1] * p[0]}
+RULES = [gj.gauss_legendre(2), gj.gauss_lobatto(3), gj.midpoint(), gj.QuadratureRule([0.3, 0.8], [0.5, 0.5])]
+STEPS = [0.01, 0.02, 0.05, 0.1]
+STATES = [(Q0, P0), (0.9 * Q0, P0), (Q0, 1.05 * P0), (1.1 * Q0, 0.95 * P0)]
+N_STEPS = 100
+
+
+def relative_change(values):
+    values = np.asarray(values)
+    return np.abs(values - values[0]).max() / np.abs(values[0])
+
+
+def test_sweep_of_64_configurations_equals_one_by_one_runs():
+    methods = [gj.CG(2, rule) for rule in RULES]
+    result = gj.sweep(H, gj.grid(method=methods, h=STEPS, state=STATES), n_steps=N_STEPS, invariants=ANGULAR)
+    assert result.energy_error.shape == (64,) and np.all(np.asarray(result.status) == 0)
+    rows = [(m, h, s) for m in methods for h in STEPS for s in STATES]
+    for i, (method, h, (q0, p0)) in enumerate(rows):
+        sol = gj.integrate(H, q0, p0, method=method, h=h, n_steps=N_STEPS)  # the unpadded rule
+        energy = jax.vmap(H)(sol.q, sol.p)
+        L = jax.vmap(ANGULAR["L"])(sol.q, sol.p)
+        # same equations and iterates; zero-weight points and batching only reorder sums
+        np.testing.assert_allclose(result.q[i], sol.q[-1], rtol=0, atol=1e-14)
+        np.testing.assert_allclose(result.p[i], sol.p[-1], rtol=0, atol=1e-14)
+        assert float(result.energy_error[i]) == pytest.approx(relative_change(energy), rel=1e-6, abs=1e-15)
+        assert float(result.invariant_errors["L"][i]) == pytest.approx(relative_change(L), rel=1e-6, abs=1e-15)
+        assert int(result.num_newton_iterations[i]) == int(sol.stats["num_newton_iterations"])
+
+
+@pytest.mark.parametrize("method", [gj.CG(2, gj.gauss_legendre(2)), gj.DG(1, gj.gauss_radau(2)), gj.GalerkinVI(2, gj.gauss_lobatto(3))])
+def test_a_zero_weight_padded_rule_gives_the_same_step(method):
+    padded = jax.tree.map(lambda r: gj.pad_rule(r, 5) if isinstance(r, gj.QuadratureRule) else r, method,
+                          is_leaf=lambda x: isinstance(x, gj.QuadratureRule))
+    assert padded.quadrature.num_points == 5
+    a = gj.step(H, Q0, P0, method=method, h=0.1)
+    b = gj.step(H, Q0, P0, method=padded, h=0.1)
+    np.testing.assert_allclose(jnp.concatenate(b), jnp.concatenate(a), rtol=0, atol=1e-15)
+
+
+def blowup(q, p):
+    return p[0] * (q[0] ** 2 + 1.0)  # q = tan(t + c): no element solution for large h
+
+
+def test_a_failed_configuration_does_not_poison_the_others():
+    state = [(jnp.array([1.0]), jnp.array([1.0]))]
+    configs = gj.grid(method=[gj.CG(1, gj.midpoint())], h=[0.001, 1.0, 0.002, 0.5], state=state)
+    result = gj.sweep(H=blowup, configs=configs, n_steps=50, reference=(jnp.zeros((4, 1)), jnp.zeros((4, 1))))
+    status = np.asarray(result.status)
+    assert status[0] == status[2] == 0 and status[1] != 0 and status[3] != 0
+    assert np.isnan(result.energy_error[1]) and np.isnan(result.q[1]).all()
+    for i, h in ((0, 0.001), (2, 0.002)):
+        solo = gj.sweep(blowup, gj.grid(method=[gj.CG(1, gj.midpoint())], h=[h], state=state), n_steps=50)
+        np.testing.assert_array_equal(result.q[i], solo.q[0])
+        assert float(result.energy_error[i]) == float(solo.energy_error[0])
+
+
+def test_save_every_returns_batched_trajectories():
+    configs = gj.grid(method=[gj.DG(1, gj.gauss_legendre(2))], h=[0.05, 0.1], state=STATES[:2])
+    result = gj.sweep(H, configs, n_steps=20, save_every=5)
+    assert result.solution.q.shape == (4, 5, 2)
+    sol = gj.integrate(H, *STATES[1], method=gj.DG(1, gj.gauss_legendre(2)), h=0.05, n_steps=20, save_every=5)
+    np.testing.assert_allclose(result.solution.q[1], sol.q, atol=1e-15)
+
+
+def test_gradient_of_a_sweep_diagnostic_equals_central_differences():
+    def loss(weights):
+        method = gj.CG(1, gj.QuadratureRule(jnp.array([0.3, 0.8]), weights))
+        configs = gj.grid(method=[method], h=[0.02, 0.05], state=STATES[:2])
+        result = gj.sweep(H, configs, n_steps=40)
+        assert not isinstance(result.status, np.ndarray) or np.all(result.status == 0)
+        return jnp.sum(result.q[:, 0])
+
+    w = jnp.array([0.45, 0.55])
+    grad = jax.grad(loss)(w)
+    for i in range(2):
+        e = jnp.zeros(2).at[i].set(1e-6)
+        fd = (loss(w + e) - loss(w - e)) / 2e-6
+        assert float(grad[i]) == pytest.approx(float(fd), rel=1e-6)
+
+
+def test_sweep_rejects_bad_input():
+    configs = gj.grid(method=[gj.CG(1, gj.midpoint())], h=[0.1], state=STATES[:1])
+    with pytest.raises(TypeError, match="Configs"):
+        gj.sweep(H, {"h": 1}, n_steps=10)
+    with pytest.raises(ValueError, match="h must be finite"):
+        gj.sweep(H, gj.grid(method=[gj.CG(1, gj.midpoint())], h=[-0.1], state=STATES[:1]), n_steps=10)
+    with pytest.raises(ValueError, match="reference"):
+        gj.sweep(H, configs, n_steps=10, reference=(Q0, P0))
+    with pytest.raises(ValueError, match="one kind"):
+        gj.stack_methods([gj.CG(1, gj.midpoint()), gj.CG(2, gj.midpoint())])
+
+
+SHARDED = textwrap.dedent(
+    """
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    import galerkin_jax as gj
+    assert len(jax.devices()) == 4, jax.devices()
+    H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
+    q0, p0 = jnp.array([0.5, 0.0]), jnp.array([0.0, 3.0 ** 0.5])
+    configs = gj.grid(method=[gj.CG(2, gj.gauss_legendre(2)), gj.CG(2, gj.gauss_lobatto(3))],
+                      h=[0.01, 0.02, 0.05], state=[(q0, p0), (0.9 * q0, p0), (q0, 1.1 * p0)])  # B = 18
+    plain = gj.sweep(H, configs, n_steps=50)
+    sharded = gj.sweep(H, configs, n_steps=50, devices=jax.devices())
+    for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(sharded)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    print("sharded equals unsharded on", len(jax.devices()), "devices")
+    """
+)
+
+
+def test_sharded_sweep_on_4_host_devices_equals_the_unsharded_run():
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    done = subprocess.run([sys.executable, "-c", SHARDED], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "sharded equals unsharded on 4 devices" in done.stdout
