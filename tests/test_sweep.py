@@ -83,7 +83,6 @@ def test_gradient_of_a_sweep_diagnostic_equals_central_differences():
         method = gj.CG(1, gj.QuadratureRule(jnp.array([0.3, 0.8]), weights))
         configs = gj.grid(method=[method], h=[0.02, 0.05], state=STATES[:2])
         result = gj.sweep(H, configs, n_steps=40)
-        assert not isinstance(result.status, np.ndarray) or np.all(result.status == 0)
         return jnp.sum(result.q[:, 0])
 
     w = jnp.array([0.45, 0.55])
