@@ -31,6 +31,38 @@ def status_message(status):
     return MESSAGES[Status(int(status))]
 
 
+SMALL_SYSTEM = 16
+
+
+@jax.custom_batching.custom_vmap
+def linear_solve(A, b):
+    """A^{-1} b for the Newton update (never differentiated: the solve sits inside custom_root)."""
+    return jnp.linalg.solve(A, b)
+
+
+@linear_solve.def_vmap
+def _linear_solve_batched(axis_size, in_batched, A, b):
+    # Under vmap (sweeps) small systems go through an unrolled Gauss-Jordan elimination:
+    # vector operations over the batch instead of one LAPACK call per member.
+    A, b = (x if batched else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, batched in zip((A, b), in_batched))
+    solve = _gauss_jordan if A.shape[-1] <= SMALL_SYSTEM else jnp.linalg.solve
+    return jax.vmap(solve)(A, b), True
+
+
+def _gauss_jordan(A, b):
+    """Gauss-Jordan elimination with partial pivoting, unrolled over the columns."""
+    n = A.shape[0]
+    M = jnp.concatenate([A, b[:, None]], axis=1)
+    rows = jnp.arange(n)
+    for k in range(n):
+        pivot = k + jnp.argmax(jnp.abs(M[k:, k]))
+        M = M[jnp.where(rows == k, pivot, jnp.where(rows == pivot, k, rows))]
+        pivot_row = M[k] / M[k, k]
+        M = M - jnp.where(rows == k, 0.0, M[:, k])[:, None] * pivot_row[None, :]
+        M = M.at[k].set(pivot_row)
+    return M[:, n]
+
+
 def newton(residual, Z0, max_iterations, scale=0.0):
     """Newton on ``residual(Z) = 0`` in a ``lax.while_loop``; never raises.
 
@@ -58,7 +90,7 @@ def newton(residual, Z0, max_iterations, scale=0.0):
         it, z, dz_prev, _, _ = carry
         r, jvp = jax.linearize(r_flat, z)
         jac = jax.vmap(jvp, out_axes=1)(jnp.eye(z.size, dtype=dtype))
-        dz = jnp.linalg.solve(jac, r)
+        dz = linear_solve(jac, r)
         z = z - dz
         size = scale + jnp.max(jnp.abs(z)) + jnp.finfo(dtype).tiny
         step = jnp.max(jnp.abs(dz))

@@ -35,9 +35,10 @@ def test_sweep_of_64_configurations_equals_one_by_one_runs():
         sol = gj.integrate(H, q0, p0, method=method, h=h, n_steps=N_STEPS)  # the unpadded rule
         energy = jax.vmap(H)(sol.q, sol.p)
         L = jax.vmap(ANGULAR["L"])(sol.q, sol.p)
-        # same equations and iterates; zero-weight points and batching only reorder sums
-        np.testing.assert_allclose(result.q[i], sol.q[-1], rtol=0, atol=1e-14)
-        np.testing.assert_allclose(result.p[i], sol.p[-1], rtol=0, atol=1e-14)
+        # same equations and iterates; a batch solves the Newton systems by Gauss-Jordan instead
+        # of LAPACK, a different rounding of ~eps per element, grown to ~1e-14 over 100 steps
+        np.testing.assert_allclose(result.q[i], sol.q[-1], rtol=0, atol=1e-13)
+        np.testing.assert_allclose(result.p[i], sol.p[-1], rtol=0, atol=1e-13)
         assert float(result.energy_error[i]) == pytest.approx(relative_change(energy), rel=1e-6, abs=1e-15)
         assert float(result.invariant_errors["L"][i]) == pytest.approx(relative_change(L), rel=1e-6, abs=1e-15)
         assert int(result.num_newton_iterations[i]) == int(sol.stats["num_newton_iterations"])

@@ -28,8 +28,8 @@ def test_vmap_over_step_sizes_equals_the_python_loop():
     hs = jnp.array([0.02, 0.05, 0.1, 0.2])
     batched = jax.vmap(lambda h: final_state(method, h))(hs)
     looped = jnp.stack([final_state(method, float(h)) for h in hs])
-    # same equations, same Newton iterates; only the order of batched sums may differ
-    np.testing.assert_allclose(batched, looped, rtol=0, atol=1e-14)
+    # same equations; batched Newton systems are solved by Gauss-Jordan instead of LAPACK
+    np.testing.assert_allclose(batched, looped, rtol=0, atol=1e-13)
 
 
 @pytest.mark.parametrize("family", [gj.CG, gj.DG])
@@ -37,7 +37,7 @@ def test_vmap_over_stacked_rules_equals_the_python_loop(family):
     methods = [family(2, rule) for rule in RULES3]
     batched = jax.vmap(final_state)(stack(methods))
     looped = jnp.stack([final_state(m) for m in methods])
-    np.testing.assert_allclose(batched, looped, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(batched, looped, rtol=0, atol=1e-13)
 
 
 def test_vmap_over_initial_states_and_args():
@@ -48,7 +48,7 @@ def test_vmap_over_initial_states_and_args():
     run = lambda q0, mu: gj.integrate(H_args, q0, P0, method=method, h=0.05, n_steps=10, args=mu).q[-1]
     batched = jax.vmap(run)(q0s, mus)
     looped = jnp.stack([run(q0, mu) for q0, mu in zip(q0s, mus)])
-    np.testing.assert_allclose(batched, looped, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(batched, looped, rtol=0, atol=1e-13)
 
 
 def loss(weights, points, h, q0):
