@@ -22,6 +22,12 @@ from ._sweep import (
     stack_methods as stack_methods,
     sweep as sweep,
 )
+from ._tune import (
+    asymmetry as asymmetry,
+    params_from_rule as params_from_rule,
+    rule_from_params as rule_from_params,
+    tune_rule as tune_rule,
+)
 from ._variational import GalerkinVI as GalerkinVI, LagrangianVI as LagrangianVI
 from ._quadrature import (
     QuadratureRule as QuadratureRule,
@@ -45,6 +51,7 @@ __all__ = [
     "Status",
     "SweepResult",
     "amplification_matrix",
+    "asymmetry",
     "gauss_legendre",
     "gauss_lobatto",
     "gauss_radau",
@@ -52,9 +59,12 @@ __all__ = [
     "integrate",
     "midpoint",
     "pad_rule",
+    "params_from_rule",
+    "rule_from_params",
     "stack_methods",
     "status_message",
     "step",
     "sweep",
     "trapezoid",
+    "tune_rule",
 ]
