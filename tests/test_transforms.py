@@ -107,3 +107,18 @@ def test_integrate_under_jit_equals_eager():
     jitted = jax.jit(lambda q0: gj.integrate(H, q0, P0, method=method, h=0.1, n_steps=10).q)(Q0)
     eager = gj.integrate(H, Q0, P0, method=method, h=0.1, n_steps=10).q
     np.testing.assert_allclose(jitted, eager, rtol=0, atol=1e-15)
+
+
+def test_checkpointed_gradient_memory_grows_like_the_number_of_blocks():
+    """Compiled temporary memory: plain reverse mode stores every element (x4 for 4x the steps);
+    checkpointed blocks of sqrt(N) elements store ~sqrt(N) states (x2)."""
+    method = gj.CG(1, gj.gauss_legendre(2))
+
+    def temp_bytes(n_steps, block, checkpoint):
+        loss = lambda q0: jnp.sum(gj.integrate(H, q0, P0, method=method, h=0.01, n_steps=n_steps, save_every=block,
+                                               checkpoint=checkpoint).q[-1] ** 2)
+        return jax.jit(jax.grad(loss)).lower(Q0).compile().memory_analysis().temp_size_in_bytes
+
+    plain = temp_bytes(8000, 8000, False) / temp_bytes(2000, 2000, False)
+    checkpointed = temp_bytes(8000, 80, True) / temp_bytes(2000, 40, True)
+    assert plain > 3.5 and checkpointed < 2.5
