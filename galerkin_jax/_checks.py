@@ -69,6 +69,12 @@ def check_counts(n_steps, save_every):
         raise ValueError(f"n_steps ({n_steps}) must be a multiple of save_every ({save_every}).")
 
 
+def check_iterations(max_newton_iterations):
+    value = max_newton_iterations
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"max_newton_iterations must be an integer >= 1, got {value!r}.")
+
+
 def check_scalar_output(fn, q0, p0, name="H"):
     """The bound function must return a real scalar; checked by ``jax.eval_shape``."""
     try:

@@ -86,6 +86,7 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEW
         ``(q1, p1)``, each shape ``(d,)``.
     """
     q, p, h = prepare(H, q, p, method, h, args)
+    _checks.check_iterations(max_newton_iterations)
     return _step(H, q, p, method, h, args, max_newton_iterations)
 
 
@@ -131,6 +132,7 @@ def integrate(
     """
     q0, p0, h = prepare(H, q0, p0, method, h, args)
     _checks.check_counts(n_steps, save_every)
+    _checks.check_iterations(max_newton_iterations)
     return _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_newton_iterations, checkpoint)
 
 

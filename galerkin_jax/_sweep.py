@@ -230,6 +230,7 @@ def sweep(
     """
     invariants = dict(invariants or {})
     _check(H, configs, n_steps, save_every, invariants, reference)
+    _checks.check_iterations(max_newton_iterations)
     reference = None if reference is None else tuple(jnp.asarray(r) for r in reference)
     inputs = (configs, reference)
     if devices is not None:

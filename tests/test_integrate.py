@@ -122,6 +122,7 @@ def test_traced_invalid_inputs_are_reported_through_status():
         (dict(H=lambda q, p: q + p), ValueError, "scalar"),
         (dict(H="not a function"), TypeError, "callable"),
         (dict(method="cg"), TypeError, "method"),
+        (dict(max_newton_iterations=0), ValueError, "max_newton_iterations"),
     ],
 )
 def test_bad_input_raises_before_compilation(kwargs, error, match):
