@@ -4,9 +4,10 @@
 
 Configurations vary the eccentricity (0.1 ... 0.7) and h (0.005 ... 0.02). For each batch
 size B: compile time, run time, and the per-configuration speed-up over running the same
-configurations one by one with the compiled B = 1 sweep. Also measured: Newton iterations
-per member against the batch maximum (a vmapped while_loop runs until its slowest member
-has converged).
+configurations one by one, (a) with the compiled B = 1 sweep (same solver, same diagnostics)
+and (b) with the compiled ``gj.integrate`` (the single-trajectory Newton, final state only).
+Also measured: Newton iterations per member against the batch's count (the batch's loop runs
+until its slowest member has converged).
 """
 
 import argparse
@@ -23,7 +24,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import galerkin_jax as gj  # noqa: E402
 from _common import timed, write  # noqa: E402
-from galerkin_jax._integrate import solve_element  # noqa: E402
+from galerkin_jax import _batched  # noqa: E402
 
 METHOD = gj.CG(2, gj.gauss_legendre(3))
 
@@ -46,21 +47,45 @@ def run(n_steps):
 
 
 def iteration_waste(size, n_steps):
-    """Mean Newton iterations per member and per step, against the batch maximum per step."""
+    """Mean Newton iterations per member and per element, against the batch's count per element."""
 
-    def member(q0, p0, h):
+    def run_batch(c):
+        inverse = jnp.linalg.inv(_batched.block_jacobians(
+            _batched.batched_residual(c.method, kepler, None, c.q0, c.p0, c.h), jnp.zeros((size, 2, 4))))
+
         def one(carry, _):
-            q, p, previous = carry
-            q1, p1, Z, iterations, _ = solve_element(METHOD, kepler, q, p, h, previous, 32)
-            return (q1, p1, (q, p, Z)), iterations
+            q, p, previous, inverse = carry
+            q1, p1, Z, iterations, _, inverse = _batched.solve_elements(c.method, kepler, None, q, p, c.h, previous,
+                                                                        inverse, 32)
+            return (q1, p1, (q, p, Z), inverse), iterations
 
-        return jax.lax.scan(one, (q0, p0, (q0, p0, METHOD.initial_guess(q0, p0))), None, length=n_steps)[1]
+        carry = (c.q0, c.p0, (c.q0, c.p0, jnp.zeros((size, 2, 4))), inverse)
+        return jax.lax.scan(one, carry, None, length=n_steps)[1]
 
-    c = configs(size, seed=1)
-    iterations = np.asarray(jax.jit(jax.vmap(member))(c.q0, c.p0, c.h))  # (size, n_steps)
-    mean, batch_max = iterations.mean(), iterations.max(axis=0).mean()
-    return {"mean_iterations_per_member": float(mean), "mean_batch_max_per_step": float(batch_max),
-            "wasted_fraction": float(1 - mean / batch_max)}
+    iterations = np.asarray(jax.jit(run_batch)(configs(size, seed=1)))  # (n_steps, size)
+    mean, batch = iterations.mean(), iterations.max(axis=1).mean()
+    return {"mean_iterations_per_member": float(mean), "mean_batch_iterations_per_step": float(batch),
+            "wasted_fraction": float(1 - mean / batch)}
+
+
+def one_by_one(fn, sample, count):
+    """Seconds per configuration, running ``count`` configurations one at a time, compiled once."""
+    pieces = [jax.tree.map(lambda x: x[i : i + 1], sample) for i in range(count)]
+    compiled = jax.jit(fn).lower(pieces[0]).compile()
+    jax.block_until_ready(compiled(pieces[0]))
+    t0 = time.perf_counter()
+    for piece in pieces:
+        jax.block_until_ready(compiled(piece))
+    return (time.perf_counter() - t0) / count
+
+
+def integrate_final_state(n_steps):
+    def run_one(c):
+        method = jax.tree.map(lambda x: x[0], c.method)
+        sol = gj.integrate(kepler, c.q0[0], c.p0[0], method=method, h=c.h[0], n_steps=n_steps, save_every=n_steps)
+        return sol.q[-1]
+
+    return run_one
 
 
 def main():
@@ -75,23 +100,22 @@ def main():
         compile_s, run_s = timed(fn, configs(size), repeat=1 if size > 64 else 3)
         rows[size] = {"compile_s": compile_s, "run_s": run_s, "run_s_per_config": run_s / size}
         print(f"B={size:5d} compile {compile_s:6.2f} s  run {run_s:8.3f} s  per config {1e3 * run_s / size:8.3f} ms", flush=True)
-    single = jax.jit(fn).lower(configs(1)).compile()
     sample = configs(options.one_by_one, seed=2)
-    pieces = [jax.tree.map(lambda x: x[i : i + 1], sample) for i in range(options.one_by_one)]
-    jax.block_until_ready(single(pieces[0]))
-    t0 = time.perf_counter()
-    for piece in pieces:
-        jax.block_until_ready(single(piece))
-    one_by_one = (time.perf_counter() - t0) / options.one_by_one
+    baselines = {"sweep_B1": one_by_one(fn, sample, options.one_by_one),
+                 "integrate": one_by_one(integrate_final_state(options.steps), sample, options.one_by_one)}
     for size, row in rows.items():
-        row["speedup_per_config_vs_one_by_one"] = one_by_one / row["run_s_per_config"]
+        for name, seconds in baselines.items():
+            row[f"speedup_per_config_vs_one_by_one_{name}"] = seconds / row["run_s_per_config"]
         row["run_ratio_to_B1"] = row["run_s"] / rows[options.sizes[0]]["run_s"]
-    print(f"one by one: {1e3 * one_by_one:.3f} ms per config")
+    for name, seconds in baselines.items():
+        print(f"one by one ({name}): {1e3 * seconds:.3f} ms per config")
     for size, row in rows.items():
-        print(f"B={size:5d} speed-up per config vs one by one: {row['speedup_per_config_vs_one_by_one']:6.1f}x")
+        print(f"B={size:5d} speed-up per config vs one by one: "
+              f"{row['speedup_per_config_vs_one_by_one_sweep_B1']:6.1f}x (sweep B=1), "
+              f"{row['speedup_per_config_vs_one_by_one_integrate']:6.1f}x (integrate)")
     waste = iteration_waste(256, 1000)
     print(f"Newton iterations (B=256, 1000 steps): {waste}")
-    write("sweep", {"n_steps": options.steps, "method": "cG(2), gauss_legendre(3)", "one_by_one_s_per_config": one_by_one,
+    write("sweep", {"n_steps": options.steps, "method": "cG(2), gauss_legendre(3)", "one_by_one_s_per_config": baselines,
                     "sizes": rows, "newton_iterations": waste})
 
 

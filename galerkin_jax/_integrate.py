@@ -37,7 +37,7 @@ def bind_args(H, args):
     return H if args is None else (lambda q, p: H(q, p, args))
 
 
-def _input_status(q0, p0, h):
+def input_status(q0, p0, h):
     ok = jnp.isfinite(h) & (h > 0) & jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(p0))
     return jnp.where(ok, Status.SUCCESS, Status.INVALID_INPUT).astype(jnp.int32)
 
@@ -93,7 +93,7 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEW
 @functools.partial(jax.jit, static_argnums=(0, 6))
 def _step(H, q, p, method, h, args, max_iterations):
     q1, p1, _, _, status = solve_element(method, bind_args(H, args), q, p, h, None, max_iterations)
-    status = jnp.maximum(status, _input_status(q, p, h))
+    status = jnp.maximum(status, input_status(q, p, h))
     bad = status != Status.SUCCESS
     return jnp.where(bad, jnp.nan, q1), jnp.where(bad, jnp.nan, p1)
 
@@ -149,7 +149,7 @@ def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, observ
         ``(final, (qs, ps))``: ``final`` holds ``q, p, status, total, most, acc``; ``qs, ps``
         have shape ``(n_blocks, d)``, the state at the end of each block.
     """
-    status0 = _input_status(q0, p0, h)
+    status0 = input_status(q0, p0, h)
     zero = jnp.int32(0)
 
     def element(carry, _):

@@ -1,8 +1,10 @@
-"""Batched parameter sweeps: one scene over many configurations in one vmapped, jitted call.
+"""Batched parameter sweeps: one scene over many configurations in one jitted call.
 
-Diagnostics are folded into the scan carry (``march``'s observer), so a sweep stores no
-trajectory unless ``save_every`` asks for one. Each configuration has its own status:
-a failed one turns NaN and stops costing Newton iterations; the others are untouched.
+The batch is solved by ``_batched``'s batch-aware simplified Newton method (Jacobians kept
+across elements, refreshed per member on demand). Diagnostics are folded into the scan
+carry, so a sweep stores no trajectory unless ``save_every`` asks for one. Each
+configuration has its own status and its own iterates: a failed one turns NaN and stops
+costing Newton iterations, and the others give the numbers they give when run alone.
 """
 
 import dataclasses
@@ -16,7 +18,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import _checks
-from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, Solution, bind_args, march
+from ._batched import march_batched
+from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, Solution, bind_args
 from ._quadrature import QuadratureRule
 
 
@@ -124,34 +127,47 @@ def _relative_change(value, initial):
     return jnp.max(jnp.abs(value - initial)) / jnp.where(scale > 0, scale, 1.0)
 
 
-def _one(H, invariants, n_steps, save_every, max_iterations, method, q0, p0, h, args, reference):
-    fn = bind_args(H, args)
-    initial = (fn(q0, p0), tuple(I(q0, p0) for I in invariants.values()))
+def _diagnostics(H, invariants):
+    """(initial, observe) for the diagnostics folded into the scan carry, per member."""
 
-    def observe(acc, q, p, _):
-        energy, others = acc
-        energy = jnp.fmax(energy, _relative_change(fn(q, p), initial[0]))
-        others = tuple(jnp.fmax(e, _relative_change(I(q, p), I0)) for e, I, I0 in zip(others, invariants.values(), initial[1]))
+    def initial(q0, p0, args):
+        return bind_args(H, args)(q0, p0), tuple(I(q0, p0) for I in invariants.values())
+
+    def observe(acc, q, p):
+        (energy, others), (H0, I0s), args = acc
+        energy = jnp.fmax(energy, _relative_change(bind_args(H, args)(q, p), H0))
+        others = tuple(jnp.fmax(e, _relative_change(I(q, p), I0)) for e, I, I0 in zip(others, invariants.values(), I0s))
         # fmax ignores NaN: a failed run is flagged by its status and made NaN below
-        return energy, others
+        return (energy, others), (H0, I0s), args
 
-    zero = jnp.zeros((), q0.dtype)
+    return initial, observe
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
+def _run(H, invariants, n_steps, save_every, max_iterations, configs, reference):
+    invariants = dict(invariants)
+    c = configs
+    initial, observe = _diagnostics(H, invariants)
+    initial_values = jax.vmap(initial)(c.q0, c.p0, c.args)
+    zero = jnp.zeros(c.size, c.q0.dtype)
+    acc0 = ((zero, tuple(zero for _ in invariants)), initial_values, c.args)
     block = save_every or n_steps
-    final, (qs, ps) = march(
-        method, fn, q0, p0, h, n_blocks=n_steps // block, block_size=block, max_iterations=max_iterations,
-        observe=observe, acc0=(zero, tuple(zero for _ in invariants)),
+    final, (qs, ps) = march_batched(
+        c.method, H, c.args, c.q0, c.p0, c.h, n_blocks=n_steps // block, block_size=block,
+        max_iterations=max_iterations, observe=observe, acc0=acc0,
     )
     failed = final["status"] != 0
     nan_if_failed = lambda x: jnp.where(failed, jnp.nan, x)
-    energy, others = final["acc"]
+    energy, others = final["acc"][0]
     final_error = None
     if reference is not None:
-        final_error = jnp.max(jnp.abs(jnp.concatenate([final["q"] - reference[0], final["p"] - reference[1]])))
+        final_error = jnp.max(jnp.abs(jnp.concatenate([final["q"] - reference[0], final["p"] - reference[1]], axis=1)), axis=1)
     solution = None
     if save_every:
+        times = jnp.arange(n_steps // block + 1, dtype=c.q0.dtype)
         solution = Solution(
-            t=jnp.arange(n_steps // block + 1, dtype=q0.dtype) * (block * h),
-            q=jnp.concatenate([q0[None], qs]), p=jnp.concatenate([p0[None], ps]),
+            t=times[None, :] * (block * c.h[:, None]),
+            q=jnp.concatenate([c.q0[:, None], qs], axis=1), p=jnp.concatenate([c.p0[:, None], ps], axis=1),
             status=final["status"], stats={},
         )
     return SweepResult(
@@ -162,12 +178,6 @@ def _one(H, invariants, n_steps, save_every, max_iterations, method, q0, p0, h, 
         num_newton_iterations=final["total"], max_newton_iterations=final["most"],
         solution=solution,
     )
-
-
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
-def _run(H, invariants, n_steps, save_every, max_iterations, configs, reference):
-    one = functools.partial(_one, H, dict(invariants), n_steps, save_every, max_iterations)
-    return jax.vmap(one)(configs.method, configs.q0, configs.p0, configs.h, configs.args, reference)
 
 
 def _check(H, configs, n_steps, save_every, invariants, reference):

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.test_util import check_grads
 
 import galerkin_jax as gj
 import helpers
@@ -35,13 +36,14 @@ def test_sweep_of_64_configurations_equals_one_by_one_runs():
         sol = gj.integrate(H, q0, p0, method=method, h=h, n_steps=N_STEPS)  # the unpadded rule
         energy = jax.vmap(H)(sol.q, sol.p)
         L = jax.vmap(ANGULAR["L"])(sol.q, sol.p)
-        # same equations and iterates; a batch solves the Newton systems by Gauss-Jordan instead
-        # of LAPACK, a different rounding of ~eps per element, grown to ~1e-14 over 100 steps
-        np.testing.assert_allclose(result.q[i], sol.q[-1], rtol=0, atol=1e-13)
-        np.testing.assert_allclose(result.p[i], sol.p[-1], rtol=0, atol=1e-13)
-        assert float(result.energy_error[i]) == pytest.approx(relative_change(energy), rel=1e-6, abs=1e-15)
-        assert float(result.invariant_errors["L"][i]) == pytest.approx(relative_change(L), rel=1e-6, abs=1e-15)
-        assert int(result.num_newton_iterations[i]) == int(sol.stats["num_newton_iterations"])
+        # same equations, other iterates: the sweep's simplified Newton keeps Jacobians across
+        # elements, integrate's Newton does not. Both stop at the round-off floor; one element
+        # agrees to < 5e-15 (measured), and 100 steps of Kepler at h = 0.1 amplify that ~30x
+        np.testing.assert_allclose(result.q[i], sol.q[-1], rtol=0, atol=3e-13)
+        np.testing.assert_allclose(result.p[i], sol.p[-1], rtol=0, atol=3e-13)
+        # H and L are O(1) functions of the states: they agree to ~3e-13 of |H_0| = 0.5, |L_0| ~ 1
+        assert float(result.energy_error[i]) == pytest.approx(relative_change(energy), rel=1e-6, abs=1e-12)
+        assert float(result.invariant_errors["L"][i]) == pytest.approx(relative_change(L), rel=1e-6, abs=1e-12)
 
 
 @pytest.mark.parametrize("method", [gj.CG(2, gj.gauss_legendre(2)), gj.DG(1, gj.gauss_radau(2)), gj.GalerkinVI(2, gj.gauss_lobatto(3))])
@@ -130,3 +132,35 @@ def test_sharded_sweep_on_4_host_devices_equals_the_unsharded_run():
     done = subprocess.run([sys.executable, "-c", SHARDED], env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "sharded equals unsharded on 4 devices" in done.stdout
+
+
+def test_sweep_gradients_pass_check_grads_in_forward_and_reverse_mode():
+    """Points, weights, h, q0, p0 and args, through the batched simplified Newton (custom_root)."""
+    H_mu = lambda q, p, mu: 0.5 * (p @ p) - mu / jnp.sqrt(q @ q)
+
+    def loss(points, weights, h, q0, p0, mu):
+        method = gj.stack_methods([gj.CG(2, gj.QuadratureRule(points, weights))] * 2)
+        configs = gj.Configs(method=method, q0=jnp.stack([q0, 0.9 * q0]), p0=jnp.stack([p0, p0]),
+                             h=jnp.stack([h, 2 * h]), args=jnp.stack([mu, 1.1 * mu]))
+        result = gj.sweep(H_mu, configs, n_steps=30)
+        return jnp.sum(result.q ** 2) + jnp.sum(result.p[:, 0])
+
+    args = (jnp.array([0.2, 0.5, 0.8]), jnp.array([0.3, 0.4, 0.3]), jnp.asarray(0.02), Q0, P0, jnp.asarray(1.0))
+    # eps = 1e-6: second-order differences leave ~1e-12 truncation, ~1e-10 round-off
+    check_grads(loss, args, order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
+
+
+def test_sweep_converges_at_huge_h_omega_and_keeps_theorem_3_1():
+    """h omega from 0.1 to 1000 in one batch: stale Jacobians are refreshed where they stop
+    contracting, every member converges, and cG(1) with exact quadrature keeps the quadratic
+    energy to round-off (Theorem 3.1) at every h."""
+    H_osc, q0, p0, omega = helpers.oscillator()
+    h = [float(x) / omega for x in (0.1, 1.0, 10.0, 100.0, 1000.0)]
+    result = gj.sweep(H_osc, gj.grid(method=[gj.CG(1, gj.gauss_legendre(2))], h=h, state=[(q0, p0)]), n_steps=200)
+    assert np.all(np.asarray(result.status) == 0)
+    # ~eps per step as a random walk over 200 steps, times cond(Newton matrix) <= 1 + (h omega)^2 / 4
+    # relative to |z|: the energy itself is exactly conserved by the scheme
+    assert np.all(np.asarray(result.energy_error) < 1e-13)
+    for i, step in enumerate(h):
+        sol = gj.integrate(H_osc, q0, p0, method=gj.CG(1, gj.gauss_legendre(2)), h=step, n_steps=200, save_every=200)
+        np.testing.assert_allclose(result.q[i], sol.q[-1], rtol=0, atol=1e-12)
