@@ -24,7 +24,6 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import galerkin_jax as gj  # noqa: E402
 from _common import timed, write  # noqa: E402
-from galerkin_jax import _batched  # noqa: E402
 
 METHOD = gj.CG(2, gj.gauss_legendre(3))
 
@@ -48,24 +47,11 @@ def run(n_steps):
 
 def iteration_waste(size, n_steps):
     """Mean Newton iterations per member and per element, against the batch's count per element."""
-
-    def run_batch(c):
-        inverse = jnp.linalg.inv(_batched.block_jacobians(
-            _batched.batched_residual(c.method, kepler, None, c.q0, c.p0, c.h), jnp.zeros((size, 2, 4))))
-
-        def one(carry, _):
-            q, p, previous, inverse = carry
-            q1, p1, Z, iterations, _, inverse = _batched.solve_elements(c.method, kepler, None, q, p, c.h, previous,
-                                                                        inverse, 32)
-            return (q1, p1, (q, p, Z), inverse), iterations
-
-        carry = (c.q0, c.p0, (c.q0, c.p0, jnp.zeros((size, 2, 4))), inverse)
-        return jax.lax.scan(one, carry, None, length=n_steps)[1]
-
-    iterations = np.asarray(jax.jit(run_batch)(configs(size, seed=1)))  # (n_steps, size)
-    mean, batch = iterations.mean(), iterations.max(axis=1).mean()
-    return {"mean_iterations_per_member": float(mean), "mean_batch_iterations_per_step": float(batch),
-            "wasted_fraction": float(1 - mean / batch)}
+    result = jax.jit(lambda c: gj.sweep(kepler, c, n_steps=n_steps))(configs(size, seed=1))
+    mean = float(result.num_newton_iterations.mean()) / n_steps
+    batch = float(result.batch_newton_iterations[0]) / n_steps
+    return {"mean_iterations_per_member": mean, "mean_batch_iterations_per_step": batch,
+            "wasted_fraction": 1 - mean / batch}
 
 
 def one_by_one(fn, sample, count):

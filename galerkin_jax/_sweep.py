@@ -58,6 +58,9 @@ class SweepResult:
         q, p: the final state, ``(B, d)``.
         status: ``Status`` codes; NaN diagnostics go with a nonzero status.
         num_newton_iterations, max_newton_iterations: total and largest per element.
+        batch_newton_iterations: the iterations the batch ran, the sum over elements of the
+            largest member count (the same for every member; ``1 - num / batch`` is the share
+            of the batch's work a member spent waiting for slower members).
         solution: a batched ``Solution`` when ``save_every`` was given, else None.
     """
 
@@ -69,6 +72,7 @@ class SweepResult:
     status: jax.Array
     num_newton_iterations: jax.Array
     max_newton_iterations: jax.Array
+    batch_newton_iterations: jax.Array
     solution: Any = None
 
 
@@ -176,6 +180,7 @@ def _run(H, invariants, n_steps, save_every, max_iterations, configs, reference)
         final_error=final_error,
         q=final["q"], p=final["p"], status=final["status"],
         num_newton_iterations=final["total"], max_newton_iterations=final["most"],
+        batch_newton_iterations=jnp.broadcast_to(final["batch"], final["total"].shape),
         solution=solution,
     )
 

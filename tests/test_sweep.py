@@ -31,6 +31,8 @@ def test_sweep_of_64_configurations_equals_one_by_one_runs():
     methods = [gj.CG(2, rule) for rule in RULES]
     result = gj.sweep(H, gj.grid(method=methods, h=STEPS, state=STATES), n_steps=N_STEPS, invariants=ANGULAR)
     assert result.energy_error.shape == (64,) and np.all(np.asarray(result.status) == 0)
+    # the batch runs, per element, as many iterations as its slowest member
+    assert int(result.batch_newton_iterations[0]) >= int(result.num_newton_iterations.max())
     rows = [(m, h, s) for m in methods for h in STEPS for s in STATES]
     for i, (method, h, (q0, p0)) in enumerate(rows):
         sol = gj.integrate(H, q0, p0, method=method, h=h, n_steps=N_STEPS)  # the unpadded rule
@@ -70,6 +72,7 @@ def test_a_failed_configuration_does_not_poison_the_others():
     for i, h in ((0, 0.001), (2, 0.002)):
         solo = gj.sweep(blowup, gj.grid(method=[gj.CG(1, gj.midpoint())], h=[h], state=state), n_steps=50)
         np.testing.assert_array_equal(result.q[i], solo.q[0])
+        assert int(solo.batch_newton_iterations[0]) == int(solo.num_newton_iterations[0])
         assert float(result.energy_error[i]) == float(solo.energy_error[0])
 
 
