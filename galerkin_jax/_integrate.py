@@ -136,30 +136,26 @@ def integrate(
     return _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_newton_iterations, checkpoint)
 
 
-def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, observe=None, acc0=None,
-          checkpoint=False):
+def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, checkpoint=False):
     """Chain ``n_blocks * block_size`` elements by a nested ``lax.scan``.
 
-    After every element ``acc = observe(acc, q1, p1, iterations)`` folds the new state
-    into a user accumulator (diagnostics kept in the carry, no trajectory stored).
     ``checkpoint=True`` rematerialises each block in reverse mode, so a gradient stores
     one carry per block instead of the residuals of every element.
 
     Returns:
-        ``(final, (qs, ps))``: ``final`` holds ``q, p, status, total, most, acc``; ``qs, ps``
+        ``(final, (qs, ps))``: ``final`` holds ``q, p, status, total, most``; ``qs, ps``
         have shape ``(n_blocks, d)``, the state at the end of each block.
     """
     status0 = input_status(q0, p0, h)
     zero = jnp.int32(0)
 
     def element(carry, _):
-        q, p, previous, status, total, most, acc = carry
+        q, p, previous, status, total, most = carry
         q1, p1, Z, iterations, s = solve_element(method, fn, q, p, h, previous, max_iterations)
         status = jnp.where(status == Status.SUCCESS, s, status)
         failed = status != Status.SUCCESS
         q1, p1 = jnp.where(failed, jnp.nan, q1), jnp.where(failed, jnp.nan, p1)
-        acc = acc if observe is None else observe(acc, q1, p1, iterations)
-        return (q1, p1, (q, p, Z), status, total + iterations, jnp.maximum(most, iterations), acc), None
+        return (q1, p1, (q, p, Z), status, total + iterations, jnp.maximum(most, iterations)), None
 
     def block(carry, _):
         carry, _ = jax.lax.scan(element, carry, None, length=block_size)
@@ -167,10 +163,10 @@ def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, observ
 
     if checkpoint:
         block = jax.checkpoint(block)
-    carry = (q0, p0, (q0, p0, method.initial_guess(q0, p0)), status0, zero, zero, acc0)
+    carry = (q0, p0, (q0, p0, method.initial_guess(q0, p0)), status0, zero, zero)
     carry, saved = jax.lax.scan(block, carry, None, length=n_blocks)
-    q, p, _, status, total, most, acc = carry
-    final = {"q": q, "p": p, "status": status, "total": total, "most": most, "acc": acc}
+    q, p, _, status, total, most = carry
+    final = {"q": q, "p": p, "status": status, "total": total, "most": most}
     return final, saved
 
 
