@@ -164,10 +164,12 @@ def solve_elements(method, H, args, q0, p0, h, previous, correction, inverse, ma
     return q1, p1, Z, iterations, status, inverse, Z - continued
 
 
-def march_batched(method, H, args, q0, p0, h, *, n_blocks, block_size, max_iterations, observe, acc0):
+def march_batched(method, H, args, q0, p0, h, *, n_blocks, block_size, max_iterations, observe, acc0,
+                  checkpoint=False):
     """``_integrate.march`` for a batch: ``n_blocks * block_size`` elements of every member.
 
-    ``acc = observe(acc, q1, p1)`` (per member, vmapped) folds each new state into the carry.
+    ``acc = observe(acc, q1, p1)`` (per member, vmapped) folds each new state into the carry;
+    ``checkpoint=True`` rematerialises each block in reverse mode.
 
     Returns:
         ``(final, (qs, ps))``: ``final`` holds ``q, p, status, total, most, acc`` (leading axis B)
@@ -204,6 +206,8 @@ def march_batched(method, H, args, q0, p0, h, *, n_blocks, block_size, max_itera
         carry, _ = jax.lax.scan(element, carry, None, length=block_size)
         return carry, (carry[0], carry[1])
 
+    if checkpoint:
+        block = jax.checkpoint(block)
     misses = (jnp.zeros_like(guess), jnp.zeros_like(guess))
     carry = (q0, p0, (q0, p0, guess), (misses, jnp.int32(0)), inverse0, status0, zero, zero, jnp.int32(0), acc0)
     carry, (qs, ps) = jax.lax.scan(block, carry, None, length=n_blocks)

@@ -147,18 +147,27 @@ def _diagnostics(H, invariants):
     return initial, observe
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
-def _run(H, invariants, n_steps, save_every, max_iterations, configs, reference):
+def _block_size(n_steps, save_every, checkpoint):
+    """Elements per block of the nested scan: ``save_every``, else one block, or with
+    ``checkpoint`` the divisor of ``n_steps`` nearest sqrt(n_steps) (memory ~ blocks + block)."""
+    if save_every or not checkpoint:
+        return save_every or n_steps
+    divisors = [b for b in range(1, n_steps + 1) if n_steps % b == 0]
+    return min(divisors, key=lambda b: abs(b - n_steps**0.5))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5))
+def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, configs, reference):
     invariants = dict(invariants)
     c = configs
     initial, observe = _diagnostics(H, invariants)
     initial_values = jax.vmap(initial)(c.q0, c.p0, c.args)
     zero = jnp.zeros(c.size, c.q0.dtype)
     acc0 = ((zero, tuple(zero for _ in invariants)), initial_values, c.args)
-    block = save_every or n_steps
+    block = _block_size(n_steps, save_every, checkpoint)
     final, (qs, ps) = march_batched(
         c.method, H, c.args, c.q0, c.p0, c.h, n_blocks=n_steps // block, block_size=block,
-        max_iterations=max_iterations, observe=observe, acc0=acc0,
+        max_iterations=max_iterations, observe=observe, acc0=acc0, checkpoint=checkpoint,
     )
     failed = final["status"] != 0
     nan_if_failed = lambda x: jnp.where(failed, jnp.nan, x)
@@ -227,6 +236,7 @@ def sweep(
     save_every=None,
     max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
     devices=None,
+    checkpoint=False,
 ):
     """Run every configuration of ``configs`` for ``n_steps`` elements in one compiled call.
 
@@ -240,6 +250,9 @@ def sweep(
         devices: shard the batch over these devices (e.g. ``jax.devices()``); results equal
             the unsharded run. Several hosts: call ``jax.distributed.initialize()`` first and
             pass ``jax.devices()`` (all global devices).
+        checkpoint: rematerialise blocks of elements in reverse mode (blocks of ``save_every``,
+            or of the divisor of ``n_steps`` nearest its square root), so that a gradient stores
+            one carry per block instead of every element's residuals. Static.
     Returns:
         ``SweepResult`` with a leading axis B on every field.
     """
@@ -250,7 +263,7 @@ def sweep(
     inputs = (configs, reference)
     if devices is not None:
         inputs = _shard(inputs, devices)
-    result = _run(H, tuple(invariants.items()), n_steps, save_every, max_newton_iterations, *inputs)
+    result = _run(H, tuple(invariants.items()), n_steps, save_every, max_newton_iterations, checkpoint, *inputs)
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
     return result
