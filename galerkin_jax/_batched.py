@@ -5,10 +5,11 @@ per-member Newton loop pays for a Jacobian and a linear factorisation in every i
 Here the batch axis is explicit. Each member keeps the inverse of a Newton matrix from an
 earlier element and iterates with it (the simplified Newton method, as in Hairer and
 Wanner's Radau5); it asks for a fresh Jacobian, at its current iterate, only when its
-contraction rate exceeds ``THETA`` or an update is not finite. The batch computes Jacobians
-only in the iterations where some member asks, and only the members that asked adopt them,
-so a member's iterates depend on its own history alone: a sweep gives the numbers of the
-configuration run by itself. Derivatives come from ``jax.lax.custom_root``, as in ``_newton``.
+iteration contracts too slowly or an update goes astray (``simplified_newton``). The batch
+computes Jacobians only in the iterations where some member asks, and only the members that
+asked adopt them, so no other member's value enters a member's arithmetic: a sweep gives the
+numbers of the configuration run by itself, up to how XLA compiles another batch size.
+Derivatives come from ``jax.lax.custom_root``, as in ``_newton``.
 """
 
 import jax
@@ -18,6 +19,7 @@ from ._integrate import bind_args, input_status
 from ._newton import Status
 
 THETA = 0.25  # contraction rate above which a member refreshes its Jacobian
+PATIENCE = 8  # iterations in one element after which a member refreshes it anyway
 
 
 def batched_residual(method, H, args, q0, p0, h):
@@ -48,24 +50,30 @@ def _where(mask, x, y):
     return jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y)
 
 
-def simplified_newton(residual, Z0, r0, inverse, scale, max_iterations):
+def simplified_newton(residual, Z0, r0, inverse, scale, max_iterations, skip):
     """Simplified Newton for all members; returns ``(Z, iterations, status, inverse)``.
 
     The iteration ``Z <- Z - K R(Z)``, ``K`` an inverse Newton matrix from an earlier iterate,
-    contracts linearly. A member stops at the round-off floor ``tol = 10 eps (scale + max|Z|)``:
-    when its update is below ``tol``; when the error left after the update, ``~ |dZ| theta /
-    (1 - theta)`` with ``theta`` the larger of the last two update ratios, is below ``tol / 10``
-    (the ratios scatter: measured on Kepler with h <= 0.1, a bound of tol left up to 1e-14 in
-    an element's end state, tol / 10 leaves 7e-16);
-    or, with a Jacobian from this element, when the updates have stopped shrinking below
-    ``sqrt(eps) (scale + max|Z|)``. A member whose ratio exceeds ``THETA`` refreshes ``K``.
+    contracts linearly at a rate ``theta``, estimated as the larger of the last two update
+    ratios (they scatter). A member stops at the round-off floor ``tol = 10 eps (scale + max|Z|)``:
+    when its update is below ``tol`` and ``K`` is known to contract (fresh, or theta <= 1/2);
+    when the error left after the update, ``~ |dZ| theta / (1 - theta)``, is below ``tol / 10``
+    (measured on Kepler with h <= 0.1: a bound of tol left up to 1e-14 in an element's end
+    state, tol / 10 leaves 7e-16); or, with a Jacobian from this element, when the updates have
+    stopped shrinking (ratio 1/2 to 2) below ``sqrt(eps) (scale + max|Z|)``.
+
+    A member asks for a fresh ``K`` at its current iterate when theta exceeds ``THETA``, after
+    ``PATIENCE`` iterations in one element (theta just below ``THETA`` would need ~25), or
+    when an update with a stale ``K`` diverges (ratio > 1) or leads to a non-finite residual;
+    such an update is rejected. A non-finite residual after an update with a fresh ``K`` is a failure. Members
+    in ``skip`` (already failed) and members with a non-finite ``Z0`` or ``r0`` do not iterate.
     """
     B, dtype = Z0.shape[0], Z0.dtype
     eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
 
     def refreshed(Z, inverse, asked):
         new = jnp.linalg.inv(block_jacobians(residual, Z))
-        return jnp.where(asked[:, None, None], new, inverse)
+        return _where(asked, new, inverse)
 
     def cond(carry):
         it, *_, active, _, _ = carry
@@ -75,43 +83,52 @@ def simplified_newton(residual, Z0, r0, inverse, scale, max_iterations):
         it, Z, r, inverse, fresh, previous_step, previous_rate, active, iterations, status = carry
         dz = jnp.einsum("bij,bj->bi", inverse, r.reshape(B, -1))
         Z_new = Z - dz.reshape(Z.shape)
-        step = jnp.max(jnp.abs(dz), axis=1)
-        finite = jnp.isfinite(step)  # max propagates NaN
+        step = jnp.max(jnp.abs(dz), axis=1)  # max propagates NaN
         size = scale + _per_member(jnp.max, jnp.abs(Z_new)) + tiny
         tol = 10.0 * eps * size
-        rate = step / previous_step  # NaN until a member has two updates with one Jacobian
-        # the ratio of successive updates scatters (the iteration matrix is not normal)
+        rate = step / previous_step  # NaN until a member has two updates with one K
         theta = jnp.fmax(rate, previous_rate)
-        converged = (step <= tol) | ((theta <= 0.5) & (step * theta / (1.0 - theta) <= 0.1 * tol))
-        converged |= fresh & (step <= jnp.sqrt(eps) * size) & (rate >= 0.5)
-        # a stale Jacobian may send an update to inf: retry with a fresh one before failing
-        failed = active & ~finite & fresh
-        accept = active & (finite | failed)
-        Z = _where(accept, Z_new, Z)
+        contracting = fresh | (theta <= 0.5)
+        converged = (step <= tol) & contracting
+        converged |= (theta <= 0.5) & (step * theta / (1.0 - theta) <= 0.1 * tol)
+        converged |= fresh & (step <= jnp.sqrt(eps) * size) & (rate >= 0.5) & (rate <= 2.0)
+        done = active & converged & jnp.isfinite(step)
+        going = active & ~done
+        # the residual at the new iterate: the next update's, and the test of this one
+        r_new = jax.lax.cond(jnp.any(going), residual, lambda _: r, Z_new)
+        bad = ~jnp.isfinite(step) | ~_per_member(jnp.all, jnp.isfinite(r_new))
+        rejected = going & ~fresh & (bad | (rate > 1.0))
+        failed = going & fresh & bad
+        accept = done | (going & ~rejected & ~failed)
+        Z, r = _where(accept, Z_new, Z), _where(accept, r_new, r)
         iterations = iterations + active
         status = jnp.where(failed, Status.NONFINITE, status)
-        active = active & ~failed & ~(converged & finite)
-        r = jax.lax.cond(jnp.any(active), residual, lambda Z: r, Z)
-        asked = active & ((rate > THETA) | ~finite)
+        active = going & ~failed
+        asked = active & (rejected | (theta > THETA) | (iterations >= PATIENCE))
         inverse = jax.lax.cond(jnp.any(asked), refreshed, lambda Z, inverse, _: inverse, Z, inverse, asked)
         fresh = fresh | asked
         previous_step = jnp.where(asked, jnp.nan, jnp.where(active, step, previous_step))
         previous_rate = jnp.where(asked, jnp.nan, jnp.where(active, rate, previous_rate))
         return it + 1, Z, r, inverse, fresh, previous_step, previous_rate, active, iterations, status
 
-    ok = _per_member(jnp.all, jnp.isfinite(Z0))
-    zero = jnp.zeros(B, jnp.int32)
+    ok = _per_member(jnp.all, jnp.isfinite(Z0)) & _per_member(jnp.all, jnp.isfinite(r0))
+    nan = jnp.full(B, jnp.nan, dtype)
     init = (
-        jnp.int32(0), Z0, r0, inverse, jnp.zeros(B, bool), jnp.full(B, jnp.nan, dtype), jnp.full(B, jnp.nan, dtype), ok, zero,
-        jnp.where(ok, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32),
+        jnp.int32(0), Z0, r0, inverse, jnp.zeros(B, bool), nan, nan, ok & ~skip, jnp.zeros(B, jnp.int32),
+        jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32),
     )
     _, Z, _, inverse, _, _, _, active, iterations, status = jax.lax.while_loop(cond, body, init)
     status = jnp.where(active, Status.NEWTON_MAX_ITERATIONS, status).astype(jnp.int32)
+    # a failed member's unknowns become the constant state: custom_root linearises there, and
+    # a finite point keeps 0 * NaN out of the others' gradients (its outputs are masked)
+    Z = _where(status == Status.SUCCESS, Z, jnp.zeros_like(Z))
     return Z, iterations, status, inverse
 
 
-def solve_batched(residual, Z0, r0, inverse, scale, max_iterations):
+def solve_batched(residual, Z0, r0, inverse, scale, max_iterations, skip):
     """Roots of the block-diagonal ``residual`` near ``Z0``; derivatives by the implicit function theorem.
+
+    ``r0`` must be ``residual(Z0)`` (custom_root calls ``solve`` with ``Z0`` only).
 
     Returns:
         ``(Z, iterations, status, inverse)``, the counts int32 and per member.
@@ -119,25 +136,31 @@ def solve_batched(residual, Z0, r0, inverse, scale, max_iterations):
     B = Z0.shape[0]
 
     def solve(f, Z):
-        Z, iterations, status, new_inverse = simplified_newton(f, Z, r0, inverse, scale, max_iterations)
+        Z, iterations, status, new_inverse = simplified_newton(f, Z, r0, inverse, scale, max_iterations, skip)
         # aux travels as float: integer aux breaks custom_root's JVP (jax-ml/jax#24295)
         return Z, (iterations.astype(Z.dtype), status.astype(Z.dtype), new_inverse)
 
     def tangent_solve(g, y):
-        return jnp.linalg.solve(block_jacobians(g, y), y.reshape(B, -1, 1)).reshape(y.shape)
+        inverse = jnp.linalg.inv(block_jacobians(g, y))
+        # a failed member's block may be singular or NaN; its outputs are masked, so its
+        # right-hand side is zero, and so is its solution: 0 * NaN must not reach the others
+        usable = _per_member(jnp.all, jnp.isfinite(inverse))
+        x = jnp.einsum("bij,bj->bi", _where(usable, inverse, jnp.zeros_like(inverse)), y.reshape(B, -1))
+        return x.reshape(y.shape)
 
     Z, aux = jax.lax.custom_root(residual, Z0, solve, tangent_solve, has_aux=True)
     iterations, status, inverse = jax.lax.stop_gradient(aux)
     return Z, iterations.astype(jnp.int32), status.astype(jnp.int32), inverse
 
 
-def solve_elements(method, H, args, q0, p0, h, previous, correction, inverse, max_iterations):
+def solve_elements(method, H, args, q0, p0, h, previous, correction, inverse, max_iterations, skip):
     """One element for every member: ``(q1, p1, Z, iterations, status, inverse, miss)``.
 
     The predictor is, per member, the previous element's polynomial continued plus
     ``correction`` (an extrapolation of earlier ``miss``es, the continuation's errors
     ``Z - continued``) or, where that one's residual is not small against its size,
-    whichever of it and the constant state has the smaller residual.
+    whichever of it, the plain continuation and the constant state has the smallest
+    residual. Members in ``skip`` are not solved (their ``Z`` is the predictor).
     """
     residual = batched_residual(method, H, args, q0, p0, h)
     guess = jax.vmap(lambda m, q, p, prev: m.initial_guess(q, p, prev))
@@ -150,14 +173,16 @@ def solve_elements(method, H, args, q0, p0, h, previous, correction, inverse, ma
     doubtful = ~(size(r_continued) < 0.1 * size(Z_continued))
 
     def rival(Z, r):
-        Z_zero = guess(method, q0, p0, None)
-        r_zero = residual(Z_zero)
-        use = ~doubtful | (size(r_continued) < size(r_zero))
-        return _where(use, Z, Z_zero), _where(use, r, r_zero)
+        for Z_other in (continued, guess(method, q0, p0, None)):
+            r_other = residual(Z_other)
+            use = ~doubtful | (size(r) < size(r_other))  # NaN residuals lose every comparison
+            Z, r = _where(use, Z, Z_other), _where(use, r, r_other)
+        return Z, r
 
     Z0, r0 = jax.lax.cond(jnp.any(doubtful), rival, lambda Z, r: (Z, r), Z_continued, r_continued)
+    Z0 = _where(skip, guess(method, q0, p0, None), Z0)  # finite, and not iterated
     scale = jax.lax.stop_gradient(jnp.maximum(jnp.max(jnp.abs(q0), axis=1), jnp.max(jnp.abs(p0), axis=1)))
-    Z, iterations, status, inverse = solve_batched(residual, Z0, r0, inverse, scale, max_iterations)
+    Z, iterations, status, inverse = solve_batched(residual, Z0, r0, inverse, scale, max_iterations, skip)
     q1, p1 = jax.vmap(lambda m, a, q, p, Z, step: m.end_state(bind_args(H, a), q, p, Z, step))(method, args, q0, p0, Z, h)
     finite = _per_member(jnp.all, jnp.isfinite(q1)) & _per_member(jnp.all, jnp.isfinite(p1))
     status = jnp.where((status == Status.SUCCESS) & ~finite, Status.NONFINITE, status).astype(jnp.int32)
@@ -168,7 +193,8 @@ def march_batched(method, H, args, q0, p0, h, *, n_blocks, block_size, max_itera
                   checkpoint=False):
     """``_integrate.march`` for a batch: ``n_blocks * block_size`` elements of every member.
 
-    ``acc = observe(acc, q1, p1)`` (per member, vmapped) folds each new state into the carry;
+    ``acc = observe(acc, q1, p1)`` (per member, vmapped) folds each new state into the carry
+    (a failed member's stand-in state, see below, once it has failed);
     ``checkpoint=True`` rematerialises each block in reverse mode.
 
     Returns:
@@ -182,6 +208,7 @@ def march_batched(method, H, args, q0, p0, h, *, n_blocks, block_size, max_itera
     inverse0 = jax.lax.stop_gradient(jnp.linalg.inv(block_jacobians(batched_residual(method, H, args, q0, p0, h), guess)))
     observe = jax.vmap(observe)
     zero = jnp.zeros(B, jnp.int32)
+    start_previous = (q0, p0, guess)
 
     def element(carry, _):
         q, p, previous, (misses, count), inverse, status, total, most, batch, acc = carry
@@ -192,25 +219,34 @@ def march_batched(method, H, args, q0, p0, h, *, n_blocks, block_size, max_itera
         weights = jnp.asarray([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [2.0, -1.0]], q.dtype)[count]
         correction = weights[0] * misses[0] + weights[1] * misses[1]
         q1, p1, Z, iterations, s, inverse, miss = solve_elements(
-            method, H, args, q, p, h, previous, correction, inverse, max_iterations)
+            method, H, args, q, p, h, previous, correction, inverse, max_iterations, status != Status.SUCCESS)
         misses = tuple(jnp.where(count >= 1, new, old) for new, old in zip((miss, misses[0]), misses))
         status = jnp.where(status == Status.SUCCESS, s, status)
-        failed = (status != Status.SUCCESS)[:, None]
-        q1, p1 = jnp.where(failed, jnp.nan, q1), jnp.where(failed, jnp.nan, p1)
+        # A failed member carries its finite initial state as a stand-in: it is not solved
+        # again, and no NaN enters the linearisation, so reverse-mode gradients of the others
+        # stay finite (0 * NaN would not). Its reported states are NaN (``nan_if_failed``).
+        failed = status != Status.SUCCESS
+        q1, p1 = _where(failed, q0, q1), _where(failed, p0, p1)
+        previous = jax.tree.map(lambda start, now: _where(failed, start, now), start_previous, (q, p, Z))
         acc = observe(acc, q1, p1)
-        carry = (q1, p1, (q, p, Z), (misses, jnp.minimum(count + 1, 3)), inverse, status, total + iterations,
+        carry = (q1, p1, previous, (misses, jnp.minimum(count + 1, 3)), inverse, status, total + iterations,
                  jnp.maximum(most, iterations), batch + jnp.max(iterations), acc)
         return carry, None
 
+    def nan_if_failed(x, status):
+        return _where(status != Status.SUCCESS, jnp.full_like(x, jnp.nan), x)
+
     def block(carry, _):
         carry, _ = jax.lax.scan(element, carry, None, length=block_size)
-        return carry, (carry[0], carry[1])
+        q, p, status = carry[0], carry[1], carry[5]
+        return carry, (nan_if_failed(q, status), nan_if_failed(p, status))
 
     if checkpoint:
         block = jax.checkpoint(block)
     misses = (jnp.zeros_like(guess), jnp.zeros_like(guess))
-    carry = (q0, p0, (q0, p0, guess), (misses, jnp.int32(0)), inverse0, status0, zero, zero, jnp.int32(0), acc0)
+    carry = (q0, p0, start_previous, (misses, jnp.int32(0)), inverse0, status0, zero, zero, jnp.int32(0), acc0)
     carry, (qs, ps) = jax.lax.scan(block, carry, None, length=n_blocks)
     q, p, _, _, _, status, total, most, batch, acc = carry
-    final = {"q": q, "p": p, "status": status, "total": total, "most": most, "batch": batch, "acc": acc}
+    final = {"q": nan_if_failed(q, status), "p": nan_if_failed(p, status), "status": status, "total": total,
+             "most": most, "batch": batch, "acc": acc}
     return final, (jnp.moveaxis(qs, 0, 1), jnp.moveaxis(ps, 0, 1))

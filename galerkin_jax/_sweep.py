@@ -3,8 +3,8 @@
 The batch is solved by ``_batched``'s batch-aware simplified Newton method (Jacobians kept
 across elements, refreshed per member on demand). Diagnostics are folded into the scan
 carry, so a sweep stores no trajectory unless ``save_every`` asks for one. Each
-configuration has its own status and its own iterates: a failed one turns NaN and stops
-costing Newton iterations, and the others give the numbers they give when run alone.
+configuration has its own status and its own iterates: a failed one turns NaN, stops
+costing Newton iterations and leaves the others' values and gradients as they are alone.
 """
 
 import dataclasses
@@ -52,7 +52,8 @@ class SweepResult:
     """Per-configuration diagnostics, each with a leading axis B.
 
     Attributes:
-        energy_error: max_n |H_n - H_0| / |H_0| (absolute where H_0 = 0).
+        energy_error: max_n |H_n - H_0| / |H_0| (absolute where H_0 = 0) of the function
+            passed; for ``LagrangianVI`` that is L, not an energy: use ``invariants``.
         invariant_errors: name -> max_n max_i |I_n - I_0|_i / max_i |I_0|_i (absolute where I_0 = 0).
         final_error: max |(q_N, p_N) - reference| or None.
         q, p: the final state, ``(B, d)``.
@@ -61,7 +62,8 @@ class SweepResult:
         batch_newton_iterations: the iterations the batch ran, the sum over elements of the
             largest member count (the same for every member; ``1 - num / batch`` is the share
             of the batch's work a member spent waiting for slower members).
-        solution: a batched ``Solution`` when ``save_every`` was given, else None.
+        solution: a batched ``Solution`` when ``save_every`` was given, else None; its
+            ``stats`` are the Newton counts above.
     """
 
     energy_error: jax.Array
@@ -181,7 +183,8 @@ def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, configs
         solution = Solution(
             t=times[None, :] * (block * c.h[:, None]),
             q=jnp.concatenate([c.q0[:, None], qs], axis=1), p=jnp.concatenate([c.p0[:, None], ps], axis=1),
-            status=final["status"], stats={},
+            status=final["status"],
+            stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"]},
         )
     return SweepResult(
         energy_error=nan_if_failed(energy),
@@ -206,7 +209,7 @@ def _check(H, configs, n_steps, save_every, invariants, reference):
             raise ValueError(f"configs: every method and args leaf needs a leading axis of size B = {B}.")
     if not isinstance(configs.h, jax.core.Tracer) and not np.all(np.asarray(configs.h) > 0):
         raise ValueError("configs: every h must be finite and > 0.")
-    _checks.check_counts(n_steps, save_every or n_steps or 1)
+    _checks.check_counts(n_steps, n_steps or 1 if save_every is None else save_every)
     if n_steps < 1:
         raise ValueError("n_steps must be >= 1.")
     if not all(callable(I) for I in invariants.values()):
@@ -248,11 +251,12 @@ def sweep(
         reference: ``(q_ref, p_ref)`` of shape ``(B, d)`` for ``final_error``.
         save_every: store a trajectory with this stride (``SweepResult.solution``); default none.
         devices: shard the batch over these devices (e.g. ``jax.devices()``); results equal
-            the unsharded run. Several hosts: call ``jax.distributed.initialize()`` first and
+            the unsharded run (up to how XLA compiles the per-device batch size). Several hosts: call ``jax.distributed.initialize()`` first and
             pass ``jax.devices()`` (all global devices).
         checkpoint: rematerialise blocks of elements in reverse mode (blocks of ``save_every``,
-            or of the divisor of ``n_steps`` nearest its square root), so that a gradient stores
-            one carry per block instead of every element's residuals. Static.
+            or of the divisor of ``n_steps`` nearest its square root: choose an ``n_steps``
+            with one), so that a gradient stores one carry per block instead of every
+            element's residuals. Static.
     Returns:
         ``SweepResult`` with a leading axis B on every field.
     """
