@@ -40,7 +40,6 @@ M, C = helpers.OSC_M, helpers.OSC_C
 EPS = np.finfo(np.float64).eps
 SAMPLING = np.logspace(-1, 2, 13)  # Omega = h omega from 0.1 to 100
 I3 = np.eye(3)
-N_PAD = 4  # every rule padded (zero weights) to 4 points: one compilation per family
 
 RULES = {
     "midpoint": gj.midpoint(),
@@ -158,12 +157,9 @@ def _amplification(method, h):
     return gj.amplification_matrix(H, Q0, P0, method=method, h=h)
 
 
-def method_of(family, rule, k=1):
-    return family(k, gj.pad_rule(rule, N_PAD))
-
-
 def amplification(family, rule, Om):
-    return np.asarray(_amplification(method_of(family, rule), Om / OMEGA))
+    """One compilation per family and point count; Omega only changes a traced h."""
+    return np.asarray(_amplification(family(1, rule), Om / OMEGA))
 
 
 def lambda1(A):
