@@ -65,8 +65,9 @@ def simplified_newton(residual, Z0, r0, inverse, scale, max_iterations, skip):
     A member asks for a fresh ``K`` at its current iterate when theta exceeds ``THETA``, after
     ``PATIENCE`` iterations in one element (theta just below ``THETA`` would need ~25), or
     when an update with a stale ``K`` diverges (ratio > 1) or leads to a non-finite residual;
-    such an update is rejected. A non-finite residual after an update with a fresh ``K`` is a failure. Members
-    in ``skip`` (already failed) and members with a non-finite ``Z0`` or ``r0`` do not iterate.
+    such an update is rejected. A non-finite residual after an update with a fresh ``K`` is
+    a failure. Members in ``skip`` (already failed) and members with a non-finite ``Z0`` or
+    ``r0`` do not iterate.
     """
     B, dtype = Z0.shape[0], Z0.dtype
     eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
