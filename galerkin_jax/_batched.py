@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from ._integrate import bind_args, input_status
-from ._newton import Status
+from ._newton import Status, solvable
 
 THETA = 0.25  # contraction rate above which a member refreshes its Jacobian
 PATIENCE = 8  # iterations in one element after which a member refreshes it anyway
@@ -142,12 +142,9 @@ def solve_batched(residual, Z0, r0, inverse, scale, max_iterations, skip):
         return Z, (iterations.astype(Z.dtype), status.astype(Z.dtype), new_inverse)
 
     def tangent_solve(g, y):
-        inverse = jnp.linalg.inv(block_jacobians(g, y))
-        # a failed member's block may be singular or NaN; its outputs are masked, so its
-        # right-hand side is zero, and so is its solution: 0 * NaN must not reach the others
-        usable = _per_member(jnp.all, jnp.isfinite(inverse))
-        x = jnp.einsum("bij,bj->bi", _where(usable, inverse, jnp.zeros_like(inverse)), y.reshape(B, -1))
-        return x.reshape(y.shape)
+        J, usable = solvable(block_jacobians(g, y))
+        x = jnp.linalg.solve(J, y.reshape(B, -1, 1)).reshape(y.shape)
+        return _where(usable, x, jnp.zeros_like(x))
 
     Z, aux = jax.lax.custom_root(residual, Z0, solve, tangent_solve, has_aux=True)
     iterations, status, inverse = jax.lax.stop_gradient(aux)

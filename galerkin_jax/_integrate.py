@@ -42,11 +42,12 @@ def input_status(q0, p0, h):
     return jnp.where(ok, Status.SUCCESS, Status.INVALID_INPUT).astype(jnp.int32)
 
 
-def solve_element(method, H, q0, p0, h, previous, max_iterations):
+def solve_element(method, H, q0, p0, h, previous, max_iterations, skip=False):
     """Solve one element; returns ``(q1, p1, Z, iterations, status)``.
 
     The predictor is the previous element's polynomial extrapolated, or the constant
-    state when that has the larger residual (it can overshoot at large h omega).
+    state when that has the larger residual (it can overshoot at large h omega). With
+    ``skip`` (an earlier element failed) nothing is solved.
     """
     residual = lambda Z: method.residual(H, q0, p0, Z, h)
     Z0 = method.initial_guess(q0, p0)
@@ -55,7 +56,7 @@ def solve_element(method, H, q0, p0, h, previous, max_iterations):
         r0, r1 = (jnp.max(jnp.abs(residual(Z))) for Z in (Z0, Z_extrapolated))
         Z0 = jnp.where(r1 < r0, Z_extrapolated, Z0)
     scale = jax.lax.stop_gradient(jnp.maximum(jnp.max(jnp.abs(q0)), jnp.max(jnp.abs(p0))))
-    Z, iterations, status = solve_implicit(residual, Z0, max_iterations, scale)
+    Z, iterations, status = solve_implicit(residual, Z0, max_iterations, scale, skip)
     q1, p1 = method.end_state(H, q0, p0, Z, h)
     finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
     status = jnp.where((status == 0) & ~finite, Status.NONFINITE, status).astype(jnp.int32)
@@ -148,25 +149,35 @@ def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, checkp
     """
     status0 = input_status(q0, p0, h)
     zero = jnp.int32(0)
+    start = (q0, p0, method.initial_guess(q0, p0))
 
     def element(carry, _):
         q, p, previous, status, total, most = carry
-        q1, p1, Z, iterations, s = solve_element(method, fn, q, p, h, previous, max_iterations)
+        q1, p1, Z, iterations, s = solve_element(method, fn, q, p, h, previous, max_iterations,
+                                                 status != Status.SUCCESS)
         status = jnp.where(status == Status.SUCCESS, s, status)
+        # after a failure the run carries its finite initial state as a stand-in, not solved
+        # again; no NaN enters the linearisation, so under vmap the reverse-mode gradients of
+        # the other members stay finite (0 * NaN would not). Reported states are NaN.
         failed = status != Status.SUCCESS
-        q1, p1 = jnp.where(failed, jnp.nan, q1), jnp.where(failed, jnp.nan, p1)
-        return (q1, p1, (q, p, Z), status, total + iterations, jnp.maximum(most, iterations)), None
+        q1, p1 = jnp.where(failed, q0, q1), jnp.where(failed, p0, p1)
+        previous = jax.tree.map(lambda a, b: jnp.where(failed, a, b), start, (q, p, Z))
+        return (q1, p1, previous, status, total + iterations, jnp.maximum(most, iterations)), None
+
+    def nan_if_failed(x, status):
+        return jnp.where(status != Status.SUCCESS, jnp.nan, x)
 
     def block(carry, _):
         carry, _ = jax.lax.scan(element, carry, None, length=block_size)
-        return carry, (carry[0], carry[1])
+        return carry, (nan_if_failed(carry[0], carry[3]), nan_if_failed(carry[1], carry[3]))
 
     if checkpoint:
         block = jax.checkpoint(block)
-    carry = (q0, p0, (q0, p0, method.initial_guess(q0, p0)), status0, zero, zero)
+    carry = (q0, p0, start, status0, zero, zero)
     carry, saved = jax.lax.scan(block, carry, None, length=n_blocks)
     q, p, _, status, total, most = carry
-    final = {"q": q, "p": p, "status": status, "total": total, "most": most}
+    final = {"q": nan_if_failed(q, status), "p": nan_if_failed(p, status), "status": status, "total": total,
+             "most": most}
     return final, saved
 
 

@@ -63,7 +63,7 @@ def _gauss_jordan(A, b):
     return M[:, n]
 
 
-def newton(residual, Z0, max_iterations, scale=0.0):
+def newton(residual, Z0, max_iterations, scale=0.0, skip=False):
     """Newton on ``residual(Z) = 0`` in a ``lax.while_loop``; never raises.
 
     It stops at the round-off floor ``tol = 10 eps (scale + max|Z|)``, where ``scale`` is
@@ -72,6 +72,9 @@ def newton(residual, Z0, max_iterations, scale=0.0):
     and the error left, ``~ |dZ_k| r^2``, is below ``tol``; or when the updates have
     stopped shrinking while below ``sqrt(eps) (scale + max|Z|)`` (ill-conditioned systems,
     e.g. huge h omega, cannot reach ``tol``).
+
+    With ``skip`` (an earlier element failed) nothing is iterated. A failed solve returns the
+    constant state ``Z = 0``, a finite point for the linearisation (see ``solve_implicit``).
 
     Returns:
         ``(Z, iterations, status)`` with ``status`` a ``Status`` code (int32).
@@ -115,15 +118,27 @@ def newton(residual, Z0, max_iterations, scale=0.0):
         jnp.int32(0),
         z0,
         jnp.asarray(jnp.inf, dtype),
-        ~finite0,
-        jnp.where(finite0, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32),
+        ~finite0 | skip,
+        jnp.where(finite0 | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32),
     )
     it, z, _, done, status = jax.lax.while_loop(cond, body, init)
     status = jnp.where(done, status, Status.NEWTON_MAX_ITERATIONS).astype(jnp.int32)
+    z = jnp.where(status == Status.SUCCESS, z, jnp.zeros_like(z))
     return z.reshape(shape), it, status
 
 
-def solve_implicit(residual, Z0, max_iterations, scale=0.0):
+def solvable(J):
+    """J with non-invertible blocks (NaN, or singular: a failed solve) replaced by the identity,
+    and the mask of the blocks kept; shape ``(..., n, n)``. A failed member's outputs are
+    masked, so its tangent right-hand side is zero and its solution must be zero too: a NaN
+    there would reach shared parameters as 0 * NaN."""
+    probe = jnp.linalg.solve(J, jnp.ones(J.shape[:-1] + (1,), J.dtype))
+    usable = jnp.all(jnp.isfinite(probe), axis=(-2, -1))
+    identity = jnp.broadcast_to(jnp.eye(J.shape[-1], dtype=J.dtype), J.shape)
+    return jnp.where(usable[..., None, None], J, identity), usable
+
+
+def solve_implicit(residual, Z0, max_iterations, scale=0.0, skip=False):
     """Root of ``residual`` near ``Z0``; derivatives by the implicit function theorem.
 
     ``jax.lax.custom_root`` differentiates the converged root through
@@ -137,12 +152,13 @@ def solve_implicit(residual, Z0, max_iterations, scale=0.0):
     """
 
     def solve(f, z0):
-        Z, it, status = newton(f, z0, max_iterations, scale)
+        Z, it, status = newton(f, z0, max_iterations, scale, skip)
         # aux travels as float: integer aux breaks custom_root's JVP (jax-ml/jax#24295)
         return Z, (it.astype(Z.dtype), status.astype(Z.dtype))
 
     def tangent_solve(g, y):
-        return jnp.linalg.solve(jax.jacfwd(g)(y).reshape(y.size, y.size), y.reshape(-1)).reshape(y.shape)
+        J, usable = solvable(jax.jacfwd(g)(y).reshape(y.size, y.size))
+        return jnp.where(usable, jnp.linalg.solve(J, y.reshape(-1)), 0.0).reshape(y.shape)
 
     Z, (it, status) = jax.lax.custom_root(residual, Z0, solve, tangent_solve, has_aux=True)
     it, status = jax.lax.stop_gradient((it, status))

@@ -122,3 +122,19 @@ def test_checkpointed_gradient_memory_grows_like_the_number_of_blocks():
     plain = temp_bytes(8000, 8000, False) / temp_bytes(2000, 2000, False)
     checkpointed = temp_bytes(8000, 80, True) / temp_bytes(2000, 40, True)
     assert plain > 3.5 and checkpointed < 2.5
+
+
+def test_a_failed_member_of_a_vmapped_integrate_leaves_the_others_gradient_finite():
+    """After a failure a run carries its finite initial state and is not solved again, so the
+    masked-out member adds no 0 * NaN to the gradient of a shared parameter."""
+    H_c = lambda q, p, c: p[0] * (c * q[0] ** 2 + 1.0)  # no element solution for h = 1
+
+    def loss(c, steps):
+        run = lambda h: gj.integrate(H_c, jnp.ones(1), jnp.ones(1), method=gj.CG(1, gj.midpoint()), h=h,
+                                     n_steps=20, save_every=20, args=c)
+        sol = jax.vmap(run)(jnp.asarray(steps))
+        return jnp.sum(jnp.where((sol.status == 0)[:, None], sol.q[:, -1], 0.0))
+
+    with_failure, without = jax.grad(loss)(1.0, [0.001, 0.002, 1.0]), jax.grad(loss)(1.0, [0.001, 0.002])
+    assert np.isfinite(float(with_failure))
+    assert float(with_failure) == pytest.approx(float(without), rel=1e-12)
