@@ -15,7 +15,7 @@ Derivatives come from ``jax.lax.custom_root``, as in ``_newton``.
 import jax
 import jax.numpy as jnp
 
-from ._integrate import bind_args, input_status
+from ._integrate import bind_args, input_status, nan_if_failed
 from ._newton import Status, solvable
 
 THETA = 0.25  # contraction rate above which a member refreshes its Jacobian
@@ -230,9 +230,6 @@ def march_batched(method, H, args, q0, p0, h, *, n_blocks, block_size, max_itera
         carry = (q1, p1, previous, (misses, jnp.minimum(count + 1, 3)), inverse, status, total + iterations,
                  jnp.maximum(most, iterations), batch + jnp.max(iterations), acc)
         return carry, None
-
-    def nan_if_failed(x, status):
-        return _where(status != Status.SUCCESS, jnp.full_like(x, jnp.nan), x)
 
     def block(carry, _):
         carry, _ = jax.lax.scan(element, carry, None, length=block_size)

@@ -42,6 +42,12 @@ def input_status(q0, p0, h):
     return jnp.where(ok, Status.SUCCESS, Status.INVALID_INPUT).astype(jnp.int32)
 
 
+def nan_if_failed(x, status):
+    """``x`` where ``status`` is SUCCESS, NaN elsewhere; ``status`` broadcasts over x's trailing axes."""
+    failed = (status != Status.SUCCESS).reshape(status.shape + (1,) * (x.ndim - status.ndim))
+    return jnp.where(failed, jnp.nan, x)
+
+
 def solve_element(method, H, q0, p0, h, previous, max_iterations, skip=False):
     """Solve one element; returns ``(q1, p1, Z, iterations, status)``.
 
@@ -163,9 +169,6 @@ def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, checkp
         q1, p1 = jnp.where(failed, q0, q1), jnp.where(failed, p0, p1)
         previous = jax.tree.map(lambda a, b: jnp.where(failed, a, b), start, (q, p, Z))
         return (q1, p1, previous, status, total + iterations, jnp.maximum(most, iterations)), None
-
-    def nan_if_failed(x, status):
-        return jnp.where(status != Status.SUCCESS, jnp.nan, x)
 
     def block(carry, _):
         carry, _ = jax.lax.scan(element, carry, None, length=block_size)

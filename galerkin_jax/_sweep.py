@@ -19,7 +19,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import _checks
 from ._batched import march_batched
-from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, Solution, bind_args
+from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, Solution, bind_args, nan_if_failed
 from ._quadrature import QuadratureRule
 
 
@@ -171,8 +171,6 @@ def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, configs
         c.method, H, c.args, c.q0, c.p0, c.h, n_blocks=n_steps // block, block_size=block,
         max_iterations=max_iterations, observe=observe, acc0=acc0, checkpoint=checkpoint,
     )
-    failed = final["status"] != 0
-    nan_if_failed = lambda x: jnp.where(failed, jnp.nan, x)
     energy, others = final["acc"][0]
     final_error = None
     if reference is not None:
@@ -187,8 +185,8 @@ def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, configs
             stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"]},
         )
     return SweepResult(
-        energy_error=nan_if_failed(energy),
-        invariant_errors={name: nan_if_failed(e) for name, e in zip(invariants, others)},
+        energy_error=nan_if_failed(energy, final["status"]),
+        invariant_errors={name: nan_if_failed(e, final["status"]) for name, e in zip(invariants, others)},
         final_error=final_error,
         q=final["q"], p=final["p"], status=final["status"],
         num_newton_iterations=final["total"], max_newton_iterations=final["most"],
