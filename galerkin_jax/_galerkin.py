@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _basis
+from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
 
 
@@ -56,8 +57,7 @@ def tested_field(H, quadrature, z0, C, antiderivative, n_test):
     return scale[:, None] * (_basis.legendre_values(alpha, n_test).T @ (w[:, None] * field))
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class CG:
     """Continuous Galerkin cG(k) in time [GBS, eq. (16)].
 
@@ -98,8 +98,7 @@ class CG:
         return tuple(jnp.split(jnp.concatenate([q0, p0]) + C[0], 2))
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class DG:
     """Discontinuous Galerkin dG(k) in time [GBS, eq. (19)].
 

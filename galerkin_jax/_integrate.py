@@ -1,6 +1,5 @@
 """One time element (``step``) and many (``integrate``): Newton per element, ``lax.scan`` over elements."""
 
-import dataclasses
 import functools
 
 import jax
@@ -8,12 +7,12 @@ import jax.numpy as jnp
 
 from . import _checks
 from ._newton import Status, solve_implicit
+from ._pytree import pytree_dataclass
 
 DEFAULT_MAX_NEWTON_ITERATIONS = 32
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class Solution:
     """Saved states of ``integrate``.
 

@@ -1,10 +1,10 @@
 """Energy-momentum schemes: the modified midpoint rule [GBS, eqs. (90)-(91)] and
 Gonzalez's midpoint discrete gradient."""
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
+
+from ._pytree import pytree_dataclass
 
 
 def _split(Z):
@@ -23,8 +23,7 @@ def _end(q0, p0, Z):
     return q0 + dq, p0 + dp
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class ModifiedMidpoint:
     """The energy-momentum "modified midpoint rule" [GBS, eqs. (90)-(91), Notation 4.2]:
 
@@ -75,8 +74,7 @@ def _radial_slope(V, q1, q2):
     return jnp.where(near, limit, quotient)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class DiscreteGradient:
     """Gonzalez's midpoint discrete gradient method, energy-conserving for any H:
 

@@ -1,18 +1,17 @@
 """Quadrature rules on the master element [0, 1] [GBS, eq. (29)]."""
 
-import dataclasses
-
 import jax
 import numpy as np
 from numpy.polynomial import legendre as npleg
+
+from ._pytree import pytree_dataclass
 
 
 def _is_concrete_array(x):
     return isinstance(x, (np.ndarray, jax.Array)) and not isinstance(x, jax.core.Tracer)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class QuadratureRule:
     """Points ``alpha_l`` in [0, 1] and weights ``w_l``: int_0^1 f ~ sum_l w_l f(alpha_l).
 

@@ -7,7 +7,6 @@ configuration has its own status and its own iterates: a failed one turns NaN, s
 costing Newton iterations and leaves the others' values and gradients as they are alone.
 """
 
-import dataclasses
 import functools
 import itertools
 from typing import Any
@@ -20,11 +19,11 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from . import _checks
 from ._batched import march_batched
 from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, Solution, bind_args, nan_if_failed
+from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class Configs:
     """Configurations of a sweep: every leaf has a leading batch axis of size B.
 
@@ -46,8 +45,7 @@ class Configs:
         return self.h.shape[0]
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class SweepResult:
     """Per-configuration diagnostics, each with a leading axis B.
 

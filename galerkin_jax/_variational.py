@@ -17,6 +17,7 @@ import numpy as np
 
 from . import _basis
 from ._galerkin import check_degree, check_rule
+from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
 
 
@@ -29,8 +30,7 @@ def _continued(C, s):
     return jnp.asarray(_basis.shift_matrix(s), C.dtype) @ C
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class GalerkinVI:
     """Galerkin variational integrator [Tang, eqs. (2.21)-(2.22)], as the continuous-stage
     partitioned Runge-Kutta method (2.34) with kernels
@@ -91,8 +91,7 @@ class GalerkinVI:
         return q0 + Z[0], p0 + h * (w @ g)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@pytree_dataclass
 class LagrangianVI:
     """Lagrangian variational integrator from the discrete Hamilton principle [Tang, eqs. (2.16)-(2.17)].
 
