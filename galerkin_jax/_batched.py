@@ -15,7 +15,7 @@ Derivatives come from ``jax.lax.custom_root``, as in ``_newton``.
 import jax
 import jax.numpy as jnp
 
-from ._integrate import bind_args, input_status, nan_if_failed
+from ._integrate import advance, bind_args, chain, input_status, select, start_carry
 from ._newton import Status, solvable
 
 THETA = 0.25  # contraction rate above which a member refreshes its Jacobian
@@ -45,11 +45,6 @@ def _per_member(fn, x):
     return fn(x.reshape(x.shape[0], -1), axis=1)
 
 
-def _where(mask, x, y):
-    """Per-member select: ``mask`` has shape (B,), ``x`` and ``y`` a leading axis B."""
-    return jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y)
-
-
 def simplified_newton(residual, Z0, r0, inverse, scale, max_iterations, skip):
     """Simplified Newton for all members; returns ``(Z, iterations, status, inverse)``.
 
@@ -74,7 +69,7 @@ def simplified_newton(residual, Z0, r0, inverse, scale, max_iterations, skip):
 
     def refreshed(Z, inverse, asked):
         new = jnp.linalg.inv(block_jacobians(residual, Z))
-        return _where(asked, new, inverse)
+        return select(asked, new, inverse)
 
     def cond(carry):
         it, *_, active, _, _ = carry
@@ -101,7 +96,7 @@ def simplified_newton(residual, Z0, r0, inverse, scale, max_iterations, skip):
         rejected = going & ~fresh & (bad | (rate > 1.0))
         failed = going & fresh & bad
         accept = done | (going & ~rejected & ~failed)
-        Z, r = _where(accept, Z_new, Z), _where(accept, r_new, r)
+        Z, r = select(accept, Z_new, Z), select(accept, r_new, r)
         iterations = iterations + active
         status = jnp.where(failed, Status.NONFINITE, status)
         active = going & ~failed
@@ -122,7 +117,7 @@ def simplified_newton(residual, Z0, r0, inverse, scale, max_iterations, skip):
     status = jnp.where(active, Status.NEWTON_MAX_ITERATIONS, status).astype(jnp.int32)
     # a failed member's unknowns become the constant state: custom_root linearises there, and
     # a finite point keeps 0 * NaN out of the others' gradients (its outputs are masked)
-    Z = _where(status == Status.SUCCESS, Z, jnp.zeros_like(Z))
+    Z = select(status == Status.SUCCESS, Z, jnp.zeros_like(Z))
     return Z, iterations, status, inverse
 
 
@@ -144,7 +139,7 @@ def solve_batched(residual, Z0, r0, inverse, scale, max_iterations, skip):
     def tangent_solve(g, y):
         J, usable = solvable(block_jacobians(g, y))
         x = jnp.linalg.solve(J, y.reshape(B, -1, 1)).reshape(y.shape)
-        return _where(usable, x, jnp.zeros_like(x))
+        return select(usable, x, jnp.zeros_like(x))
 
     Z, aux = jax.lax.custom_root(residual, Z0, solve, tangent_solve, has_aux=True)
     iterations, status, inverse = jax.lax.stop_gradient(aux)
@@ -162,7 +157,7 @@ def solve_elements(method, H, args, q0, p0, h, previous, correction, inverse, ma
     """
     residual = batched_residual(method, H, args, q0, p0, h)
     guess = jax.vmap(lambda m, q, p, prev: m.initial_guess(q, p, prev))
-    continued = guess(method, q0, p0, previous)
+    continued, constant = guess(method, q0, p0, previous), guess(method, q0, p0, None)
     Z_continued = continued + correction
     r_continued = residual(Z_continued)
     size = lambda x: _per_member(jnp.max, jnp.abs(x))
@@ -171,14 +166,14 @@ def solve_elements(method, H, args, q0, p0, h, previous, correction, inverse, ma
     doubtful = ~(size(r_continued) < 0.1 * size(Z_continued))
 
     def rival(Z, r):
-        for Z_other in (continued, guess(method, q0, p0, None)):
+        for Z_other in (continued, constant):
             r_other = residual(Z_other)
             use = ~doubtful | (size(r) < size(r_other))  # NaN residuals lose every comparison
-            Z, r = _where(use, Z, Z_other), _where(use, r, r_other)
+            Z, r = select(use, Z, Z_other), select(use, r, r_other)
         return Z, r
 
     Z0, r0 = jax.lax.cond(jnp.any(doubtful), rival, lambda Z, r: (Z, r), Z_continued, r_continued)
-    Z0 = _where(skip, guess(method, q0, p0, None), Z0)  # finite, and not iterated
+    Z0 = select(skip, constant, Z0)  # finite, and not iterated
     scale = jax.lax.stop_gradient(jnp.maximum(jnp.max(jnp.abs(q0), axis=1), jnp.max(jnp.abs(p0), axis=1)))
     Z, iterations, status, inverse = solve_batched(residual, Z0, r0, inverse, scale, max_iterations, skip)
     q1, p1 = jax.vmap(lambda m, a, q, p, Z, step: m.end_state(bind_args(H, a), q, p, Z, step))(method, args, q0, p0, Z, h)
@@ -191,57 +186,34 @@ def march_batched(method, H, args, q0, p0, h, *, n_blocks, block_size, max_itera
                   checkpoint=False):
     """``_integrate.march`` for a batch: ``n_blocks * block_size`` elements of every member.
 
-    ``acc = observe(acc, q1, p1)`` (per member, vmapped) folds each new state into the carry
-    (a failed member's stand-in state, see below, once it has failed);
-    ``checkpoint=True`` rematerialises each block in reverse mode.
+    ``acc = observe(acc, q1, p1)`` (batched: leading axis B) folds each new state into the
+    carry (a failed member's stand-in state once it has failed, see ``_integrate.advance``).
 
     Returns:
         ``(final, (qs, ps))``: ``final`` holds ``q, p, status, total, most, acc`` (leading axis B)
         and ``batch``, the iterations the batch ran (per element the largest member count);
         ``qs, ps`` have shape ``(B, n_blocks, d)``, the state at the end of each block.
     """
-    B = q0.shape[0]
-    status0 = jax.vmap(input_status)(q0, p0, h)
     guess = jax.vmap(lambda m, q, p: m.initial_guess(q, p))(method, q0, p0)
     inverse0 = jax.lax.stop_gradient(jnp.linalg.inv(block_jacobians(batched_residual(method, H, args, q0, p0, h), guess)))
-    observe = jax.vmap(observe)
-    zero = jnp.zeros(B, jnp.int32)
-    start_previous = (q0, p0, guess)
+    carry, start = start_carry(q0, p0, guess, jax.vmap(input_status)(q0, p0, h))
+    misses = (jnp.zeros_like(guess), jnp.zeros_like(guess))
+    carry.update(misses=misses, count=jnp.int32(0), inverse=inverse0, batch=jnp.int32(0), acc=acc0)
 
-    def element(carry, _):
-        q, p, previous, (misses, count), inverse, status, total, most, batch, acc = carry
+    def element(c):
         # The continuation's miss varies smoothly from element to element; its linear
         # extrapolation from the last two leaves O(h^2) of it (iterations 3.9 -> 3.2 per
         # element in benchmarks/bench_sweep.py). ``count`` elements are done (capped at 3);
         # the first one has no continuation, hence no miss.
-        weights = jnp.asarray([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [2.0, -1.0]], q.dtype)[count]
-        correction = weights[0] * misses[0] + weights[1] * misses[1]
-        q1, p1, Z, iterations, s, inverse, miss = solve_elements(
-            method, H, args, q, p, h, previous, correction, inverse, max_iterations, status != Status.SUCCESS)
-        misses = tuple(jnp.where(count >= 1, new, old) for new, old in zip((miss, misses[0]), misses))
-        status = jnp.where(status == Status.SUCCESS, s, status)
-        # A failed member carries its finite initial state as a stand-in: it is not solved
-        # again, and no NaN enters the linearisation, so reverse-mode gradients of the others
-        # stay finite (0 * NaN would not). Its reported states are NaN (``nan_if_failed``).
-        failed = status != Status.SUCCESS
-        q1, p1 = _where(failed, q0, q1), _where(failed, p0, p1)
-        previous = jax.tree.map(lambda start, now: _where(failed, start, now), start_previous, (q, p, Z))
-        acc = observe(acc, q1, p1)
-        carry = (q1, p1, previous, (misses, jnp.minimum(count + 1, 3)), inverse, status, total + iterations,
-                 jnp.maximum(most, iterations), batch + jnp.max(iterations), acc)
-        return carry, None
+        weights = jnp.asarray([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [2.0, -1.0]], q0.dtype)[c["count"]]
+        correction = weights[0] * c["misses"][0] + weights[1] * c["misses"][1]
+        q1, p1, Z, iterations, status, inverse, miss = solve_elements(
+            method, H, args, c["q"], c["p"], h, c["previous"], correction, c["inverse"], max_iterations,
+            c["status"] != Status.SUCCESS)
+        misses = tuple(jnp.where(c["count"] >= 1, new, old) for new, old in zip((miss, c["misses"][0]), c["misses"]))
+        c = advance(c, start, q1, p1, Z, iterations, status)
+        return dict(c, misses=misses, count=jnp.minimum(c["count"] + 1, 3), inverse=inverse,
+                    batch=c["batch"] + jnp.max(iterations), acc=observe(c["acc"], c["q"], c["p"]))
 
-    def block(carry, _):
-        carry, _ = jax.lax.scan(element, carry, None, length=block_size)
-        q, p, status = carry[0], carry[1], carry[5]
-        return carry, (nan_if_failed(q, status), nan_if_failed(p, status))
-
-    if checkpoint:
-        block = jax.checkpoint(block)
-    misses = (jnp.zeros_like(guess), jnp.zeros_like(guess))
-    carry = (q0, p0, start_previous, (misses, jnp.int32(0)), inverse0, status0, zero, zero, jnp.int32(0), acc0)
-    carry, (qs, ps) = jax.lax.scan(block, carry, None, length=n_blocks)
-    q, p, _, _, _, status, total, most, batch, acc = carry
-    final = {"q": nan_if_failed(q, status), "p": nan_if_failed(p, status), "status": status, "total": total,
-             "most": most, "batch": batch, "acc": acc}
+    final, (qs, ps) = chain(element, carry, n_blocks=n_blocks, block_size=block_size, checkpoint=checkpoint)
     return final, (jnp.moveaxis(qs, 0, 1), jnp.moveaxis(ps, 0, 1))

@@ -41,10 +41,15 @@ def input_status(q0, p0, h):
     return jnp.where(ok, Status.SUCCESS, Status.INVALID_INPUT).astype(jnp.int32)
 
 
+def select(mask, x, y):
+    """``x`` where ``mask``, else ``y``, per run: ``mask`` has shape () (one run) or ``(B,)``
+    (a batch; x and y have a leading axis B)."""
+    return jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - mask.ndim)), x, y)
+
+
 def nan_if_failed(x, status):
-    """``x`` where ``status`` is SUCCESS, NaN elsewhere; ``status`` broadcasts over x's trailing axes."""
-    failed = (status != Status.SUCCESS).reshape(status.shape + (1,) * (x.ndim - status.ndim))
-    return jnp.where(failed, jnp.nan, x)
+    """``x`` where ``status`` is SUCCESS, NaN elsewhere (per run, as in ``select``)."""
+    return select(status != Status.SUCCESS, jnp.full_like(x, jnp.nan), x)
 
 
 def solve_element(method, H, q0, p0, h, previous, max_iterations, skip=False):
@@ -100,8 +105,7 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEW
 def _step(H, q, p, method, h, args, max_iterations):
     q1, p1, _, _, status = solve_element(method, bind_args(H, args), q, p, h, None, max_iterations)
     status = jnp.maximum(status, input_status(q, p, h))
-    bad = status != Status.SUCCESS
-    return jnp.where(bad, jnp.nan, q1), jnp.where(bad, jnp.nan, p1)
+    return nan_if_failed(q1, status), nan_if_failed(p1, status)
 
 
 def integrate(
@@ -142,45 +146,65 @@ def integrate(
     return _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_newton_iterations, checkpoint)
 
 
-def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, checkpoint=False):
-    """Chain ``n_blocks * block_size`` elements by a nested ``lax.scan``.
+def start_carry(q0, p0, guess, status):
+    """The scan carry before the first element, and ``start``, the stand-in after a failure."""
+    zero = jnp.zeros(status.shape, jnp.int32)
+    start = (q0, p0, (q0, p0, guess))
+    return dict(q=q0, p=p0, previous=start[2], status=status, total=zero, most=zero), start
 
-    ``checkpoint=True`` rematerialises each block in reverse mode, so a gradient stores
-    one carry per block instead of the residuals of every element.
+
+def advance(carry, start, q1, p1, Z, iterations, status):
+    """The carry after one element. The first failure's status is kept; from then on the run
+    carries its finite ``start`` as a stand-in and is not solved again, so no NaN enters the
+    linearisation and, under vmap, the reverse-mode gradients of the other runs stay finite
+    (0 * NaN would not). Reported states are NaN (``nan_if_failed``)."""
+    status = jnp.where(carry["status"] == Status.SUCCESS, status, carry["status"])
+    now = (q1, p1, (carry["q"], carry["p"], Z))
+    q1, p1, previous = jax.tree.map(lambda a, b: select(status != Status.SUCCESS, a, b), start, now)
+    return dict(carry, q=q1, p=p1, previous=previous, status=status, total=carry["total"] + iterations,
+                most=jnp.maximum(carry["most"], iterations))
+
+
+def chain(element, carry, *, n_blocks, block_size, checkpoint):
+    """``carry -> element(carry)`` over ``n_blocks * block_size`` elements by a nested ``lax.scan``.
+
+    ``checkpoint=True`` rematerialises each block in reverse mode, so a gradient stores one
+    carry per block instead of the residuals of every element.
+
+    Returns:
+        ``(final, (qs, ps))``: the last carry with its ``q, p`` NaN where failed, and the states
+        at the end of each block (block axis first), NaN where failed.
+    """
+
+    def reported(carry):
+        return nan_if_failed(carry["q"], carry["status"]), nan_if_failed(carry["p"], carry["status"])
+
+    def block(carry, _):
+        carry, _ = jax.lax.scan(lambda c, _: (element(c), None), carry, None, length=block_size)
+        return carry, reported(carry)
+
+    if checkpoint:
+        block = jax.checkpoint(block)
+    carry, saved = jax.lax.scan(block, carry, None, length=n_blocks)
+    q, p = reported(carry)
+    return dict(carry, q=q, p=p), saved
+
+
+def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, checkpoint=False):
+    """Chain ``n_blocks * block_size`` elements of one run (see ``chain``).
 
     Returns:
         ``(final, (qs, ps))``: ``final`` holds ``q, p, status, total, most``; ``qs, ps``
         have shape ``(n_blocks, d)``, the state at the end of each block.
     """
-    status0 = input_status(q0, p0, h)
-    zero = jnp.int32(0)
-    start = (q0, p0, method.initial_guess(q0, p0))
+    carry, start = start_carry(q0, p0, method.initial_guess(q0, p0), input_status(q0, p0, h))
 
-    def element(carry, _):
-        q, p, previous, status, total, most = carry
-        q1, p1, Z, iterations, s = solve_element(method, fn, q, p, h, previous, max_iterations,
-                                                 status != Status.SUCCESS)
-        status = jnp.where(status == Status.SUCCESS, s, status)
-        # after a failure the run carries its finite initial state as a stand-in, not solved
-        # again; no NaN enters the linearisation, so under vmap the reverse-mode gradients of
-        # the other members stay finite (0 * NaN would not). Reported states are NaN.
-        failed = status != Status.SUCCESS
-        q1, p1 = jnp.where(failed, q0, q1), jnp.where(failed, p0, p1)
-        previous = jax.tree.map(lambda a, b: jnp.where(failed, a, b), start, (q, p, Z))
-        return (q1, p1, previous, status, total + iterations, jnp.maximum(most, iterations)), None
+    def element(c):
+        solved = solve_element(method, fn, c["q"], c["p"], h, c["previous"], max_iterations,
+                               c["status"] != Status.SUCCESS)
+        return advance(c, start, *solved)
 
-    def block(carry, _):
-        carry, _ = jax.lax.scan(element, carry, None, length=block_size)
-        return carry, (nan_if_failed(carry[0], carry[3]), nan_if_failed(carry[1], carry[3]))
-
-    if checkpoint:
-        block = jax.checkpoint(block)
-    carry = (q0, p0, start, status0, zero, zero)
-    carry, saved = jax.lax.scan(block, carry, None, length=n_blocks)
-    q, p, _, status, total, most = carry
-    final = {"q": nan_if_failed(q, status), "p": nan_if_failed(p, status), "status": status, "total": total,
-             "most": most}
-    return final, saved
+    return chain(element, carry, n_blocks=n_blocks, block_size=block_size, checkpoint=checkpoint)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9))

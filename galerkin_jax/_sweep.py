@@ -131,20 +131,24 @@ def _relative_change(value, initial):
     return jnp.max(jnp.abs(value - initial)) / jnp.where(scale > 0, scale, 1.0)
 
 
-def _diagnostics(H, invariants):
-    """(initial, observe) for the diagnostics folded into the scan carry, per member."""
+def _diagnostics(H, invariants, q0, p0, args):
+    """``(acc0, observe)``: the largest relative changes of H and of the invariants, folded
+    into the scan carry by the batched ``observe(acc, q, p)``; the initial values and args
+    are closed over, not carried."""
 
-    def initial(q0, p0, args):
-        return bind_args(H, args)(q0, p0), tuple(I(q0, p0) for I in invariants.values())
+    def initial(q, p, a):
+        return bind_args(H, a)(q, p), tuple(I(q, p) for I in invariants.values())
 
-    def observe(acc, q, p):
-        (energy, others), (H0, I0s), args = acc
+    def observe_one(acc, q, p, start, args):
+        (energy, others), (H0, I0s) = acc, start
         energy = jnp.fmax(energy, _relative_change(bind_args(H, args)(q, p), H0))
         others = tuple(jnp.fmax(e, _relative_change(I(q, p), I0)) for e, I, I0 in zip(others, invariants.values(), I0s))
         # fmax ignores NaN: a failed run is flagged by its status and made NaN below
-        return (energy, others), (H0, I0s), args
+        return energy, others
 
-    return initial, observe
+    start = jax.vmap(initial)(q0, p0, args)
+    zero = jnp.zeros(q0.shape[0], q0.dtype)
+    return (zero, tuple(zero for _ in invariants)), lambda acc, q, p: jax.vmap(observe_one)(acc, q, p, start, args)
 
 
 def _block_size(n_steps, save_every, checkpoint):
@@ -160,16 +164,13 @@ def _block_size(n_steps, save_every, checkpoint):
 def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, configs, reference):
     invariants = dict(invariants)
     c = configs
-    initial, observe = _diagnostics(H, invariants)
-    initial_values = jax.vmap(initial)(c.q0, c.p0, c.args)
-    zero = jnp.zeros(c.size, c.q0.dtype)
-    acc0 = ((zero, tuple(zero for _ in invariants)), initial_values, c.args)
+    acc0, observe = _diagnostics(H, invariants, c.q0, c.p0, c.args)
     block = _block_size(n_steps, save_every, checkpoint)
     final, (qs, ps) = march_batched(
         c.method, H, c.args, c.q0, c.p0, c.h, n_blocks=n_steps // block, block_size=block,
         max_iterations=max_iterations, observe=observe, acc0=acc0, checkpoint=checkpoint,
     )
-    energy, others = final["acc"][0]
+    energy, others = final["acc"]
     final_error = None
     if reference is not None:
         final_error = jnp.max(jnp.abs(jnp.concatenate([final["q"] - reference[0], final["p"] - reference[1]], axis=1)), axis=1)
