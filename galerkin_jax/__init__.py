@@ -14,14 +14,8 @@ from ._integrate import (
 )
 from ._midpoint import DiscreteGradient as DiscreteGradient, ModifiedMidpoint as ModifiedMidpoint
 from ._newton import Status as Status, status_message as status_message
-from ._sweep import (
-    Configs as Configs,
-    SweepResult as SweepResult,
-    grid as grid,
-    pad_rule as pad_rule,
-    stack_methods as stack_methods,
-    sweep as sweep,
-)
+from ._configs import Configs as Configs, grid as grid, pad_rule as pad_rule, stack_methods as stack_methods
+from ._sweep import SweepResult as SweepResult, sweep as sweep
 from ._tune import (
     asymmetry as asymmetry,
     params_from_rule as params_from_rule,
