@@ -13,7 +13,8 @@ from ._integrate import (
     step as step,
 )
 from ._midpoint import DiscreteGradient as DiscreteGradient, ModifiedMidpoint as ModifiedMidpoint
-from ._newton import Status as Status, status_message as status_message
+from ._solve import Status as Status, status_message as status_message
+from ._checks import Float32Warning as Float32Warning
 from ._configs import Configs as Configs, grid as grid, pad_rule as pad_rule, stack_methods as stack_methods
 from ._sweep import SweepResult as SweepResult, sweep as sweep
 from ._tune import (
@@ -37,6 +38,7 @@ __all__ = [
     "Configs",
     "DG",
     "DiscreteGradient",
+    "Float32Warning",
     "GalerkinVI",
     "LagrangianVI",
     "ModifiedMidpoint",

@@ -14,6 +14,16 @@ import numpy as np
 from numpy.polynomial import legendre as npleg
 
 
+def combine(A, X):
+    """``A @ X`` for a small coefficient array A (shape ``(m,)`` or ``(l, m)``) and X of shape
+    ``(m, ...)``, as a broadcast multiply-and-sum: XLA fuses it with its neighbours, where a
+    matrix product of this size would be a kernel launch of its own (several times the cost)."""
+    A = jnp.asarray(A, X.dtype)
+    if A.ndim == 1:
+        return jnp.sum(A.reshape(A.shape + (1,) * (X.ndim - 1)) * X, axis=0)
+    return jnp.sum(A.reshape(A.shape + (1,) * (X.ndim - 1)) * X[None], axis=1)
+
+
 def legendre_values(alpha, n):
     """P_j(2 alpha - 1) for j < n, by the three-term recurrence; differentiable in alpha.
 
@@ -30,6 +40,16 @@ def legendre_values(alpha, n):
     return jnp.stack(values, axis=-1)
 
 
+def legendre_derivatives(alpha, n):
+    """d/dalpha P_j(2 alpha - 1) for j < n, from P'_{j+1} = P'_{j-1} + (2j + 1) P_j; shape ``(m, n)``."""
+    P = legendre_values(alpha, n)
+    zero = jnp.zeros_like(alpha)
+    derivatives = [zero, 2.0 * jnp.ones_like(alpha)][:n]
+    for j in range(1, n - 1):
+        derivatives.append(derivatives[j - 1] + 2.0 * (2 * j + 1) * P[:, j])
+    return jnp.stack(derivatives, axis=-1)
+
+
 def legendre_antiderivatives(alpha, n):
     """A_j(alpha) = int_0^alpha P_j(2t - 1) dt for j < n; shape ``(m, n)``.
 
@@ -43,6 +63,17 @@ def legendre_antiderivatives(alpha, n):
 def test_scale(n):
     """2i + 1 for i < n: (2i + 1) int_0^1 P_i P_j = delta_ij."""
     return np.arange(n) * 2.0 + 1.0
+
+
+@functools.lru_cache(maxsize=None)
+def antiderivative_matrix(n):
+    """T, shape ``(n + 1, n)``: sum_j C_j A_j = sum_i (T @ C)_i P_i, exact in binary up to n = 2
+    and to one rounding beyond (A_0 = (P_0 + P_1) / 2, A_j = (P_{j+1} - P_{j-1}) / (2 (2j + 1)))."""
+    T = np.zeros((n + 1, n))
+    T[0, 0] = T[1, 0] = 0.5
+    for j in range(1, n):
+        T[j + 1, j], T[j - 1, j] = 1.0 / (2 * (2 * j + 1)), -1.0 / (2 * (2 * j + 1))
+    return T
 
 
 @functools.lru_cache(maxsize=None)

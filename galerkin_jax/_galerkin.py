@@ -16,20 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _basis
+from ._defect import local_error, symplectic_field
 from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
-
-
-def symplectic_field(H):
-    """z -> J DH(z) for z = (q, p) stacked, with DH from ``jax.grad`` [GBS, eq. (6)]."""
-    dH = jax.grad(H, argnums=(0, 1))
-
-    def field(z):
-        q, p = jnp.split(z, 2)
-        dHdq, dHdp = dH(q, p)
-        return jnp.concatenate([dHdp, -dHdq])
-
-    return field
 
 
 def check_degree(cls, k, least):
@@ -52,9 +41,9 @@ def tested_field(H, quadrature, z0, C, antiderivative, n_test):
     alpha = jnp.asarray(quadrature.points, dtype)
     w = jnp.asarray(quadrature.weights, dtype)
     basis = _basis.legendre_antiderivatives(alpha, len(C)) if antiderivative else _basis.legendre_values(alpha, len(C))
-    field = jax.vmap(symplectic_field(H))(z0[None, :] + basis @ C)
+    field = jax.vmap(symplectic_field(H))(z0[None, :] + _basis.combine(basis, C))
     scale = jnp.asarray(_basis.test_scale(n_test), dtype)
-    return scale[:, None] * (_basis.legendre_values(alpha, n_test).T @ (w[:, None] * field))
+    return scale[:, None] * _basis.combine(_basis.legendre_values(alpha, n_test).T, w[:, None] * field)
 
 
 @pytree_dataclass
@@ -86,16 +75,23 @@ class CG:
         if previous is None:
             return jnp.zeros((self.k, 2 * q0.shape[0]), q0.dtype)
         C = previous[2]
-        return jnp.asarray(_basis.shift_matrix(self.k), C.dtype) @ C
+        return _basis.combine(_basis.shift_matrix(self.k), C)
 
     def residual(self, H, q0, p0, C, h):
         """R(C) = 0 is eq. (16) tested with (2i + 1) P_i, i < k: C_i - h (2i+1) Q[P_i J DH(z^h)]."""
         z0 = jnp.concatenate([q0, p0])
         return C - h * tested_field(H, self.quadrature, z0, C, True, self.k)
 
-    def end_state(self, H, q0, p0, C, h):
-        """(q1, p1) = z^h(1) = z_0 + C_0."""
-        return tuple(jnp.split(jnp.concatenate([q0, p0]) + C[0], 2))
+    def increment(self, H, q0, p0, C, h):
+        """z_1 - z_0 = z^h(1) - z_0 = C_0, split into (dq, dp)."""
+        return tuple(jnp.split(C[0], 2))
+
+    def polynomial(self, H, q0, p0, C, h):
+        """Legendre coefficients of z^h - z_0, shape ``(k + 1, 2d)``."""
+        return _basis.combine(_basis.antiderivative_matrix(self.k), C)
+
+    def local_error(self, H, q0, p0, C, h):
+        return local_error(H, q0, p0, self.polynomial(H, q0, p0, C, h), C[0], h)
 
 
 @pytree_dataclass
@@ -125,18 +121,25 @@ class DG:
         if previous is None:
             return jnp.zeros((self.k + 1, 2 * q0.shape[0]), q0.dtype)
         a = previous[2]
-        return jnp.asarray(_basis.shift_matrix(self.k + 1, subtract_end=True), a.dtype) @ a
+        return _basis.combine(_basis.shift_matrix(self.k + 1, subtract_end=True), a)
 
     def residual(self, H, q0, p0, a, h):
         """R(a) = 0 is eq. (19) tested with (2i + 1) P_i, i <= k."""
         n, dtype = self.k + 1, a.dtype
         signs = jnp.asarray((-1.0) ** np.arange(n), dtype)  # P_j(-1)
         jump = signs @ a  # z^h(0) - z_0
-        derivative = jnp.asarray(_basis.derivative_matrix(n), dtype) @ a
+        derivative = _basis.combine(_basis.derivative_matrix(n), a)
         tested_jump = jnp.asarray(_basis.test_scale(n), dtype) * signs
         z0 = jnp.concatenate([q0, p0])
         return derivative + tested_jump[:, None] * jump[None, :] - h * tested_field(H, self.quadrature, z0, a, False, n)
 
-    def end_state(self, H, q0, p0, a, h):
-        """(q1, p1) = z^h(1) = z_0 + sum_j a_j."""
-        return tuple(jnp.split(jnp.concatenate([q0, p0]) + jnp.sum(a, axis=0), 2))
+    def increment(self, H, q0, p0, a, h):
+        """z_1 - z_0 = z^h(1) - z_0 = sum_j a_j, split into (dq, dp)."""
+        return tuple(jnp.split(jnp.sum(a, axis=0), 2))
+
+    def polynomial(self, H, q0, p0, a, h):
+        """Legendre coefficients of z^h - z_0: the unknowns themselves, shape ``(k + 1, 2d)``."""
+        return a
+
+    def local_error(self, H, q0, p0, a, h):
+        return local_error(H, q0, p0, a, jnp.sum(a, axis=0), h)

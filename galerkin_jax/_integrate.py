@@ -1,15 +1,30 @@
-"""One time element (``step``) and many (``integrate``): Newton per element, ``lax.scan`` over elements."""
+"""One time element (``step``), many (``integrate``), and the one-step Jacobian (``amplification_matrix``)."""
 
 import functools
 
 import jax
 import jax.numpy as jnp
 
-from . import _checks
-from ._newton import Status, solve_implicit
+from . import _basis, _checks
+from ._march import bind_args, input_status, march, nan_if_failed, solve_element
 from ._pytree import pytree_dataclass
 
 DEFAULT_MAX_NEWTON_ITERATIONS = 32
+
+
+@pytree_dataclass
+class DenseOutput:
+    """Every element's polynomial: ``z(t_n + alpha h) = z_n + sum_j W[n, j] P_j(2 alpha - 1)``.
+
+    Attributes:
+        h: the step size.
+        z: ``(N + 1, 2d)``, the states at the nodes t_n = n h.
+        W: ``(N, m, 2d)``, Legendre coefficients of each element's polynomial minus its start.
+    """
+
+    h: jax.Array
+    z: jax.Array
+    W: jax.Array
 
 
 @pytree_dataclass
@@ -20,9 +35,15 @@ class Solution:
         t: shape ``(m,)``, ``m = n_steps // save_every + 1``, starting at 0.
         q, p: shape ``(m, d)``, the initial state first.
         status: int32 ``Status`` code, 0 when every implicit solve converged. After the
-            first failure the remaining states are NaN.
-        stats: ``num_newton_iterations`` (total) and ``max_newton_iterations`` (largest
-            count in one element).
+            first failure the remaining states are NaN. Status 0 promises converged solves,
+            not accurate steps: read ``error_estimate`` for that.
+        stats: ``num_newton_iterations`` (total), ``max_newton_iterations`` (largest count in
+            one element) and ``batch_newton_iterations`` (the iterations the batch ran:
+            under ``vmap`` each element waits for the batch's slowest member).
+        error_estimate: the largest estimated local (one-element) error of the run, max-norm
+            over (q, p), shape () (see ``_defect``); NaN for a failed run and for
+            ``LagrangianVI``.
+        dense: ``DenseOutput`` with ``integrate(..., dense=True)``, else None.
     """
 
     t: jax.Array
@@ -30,47 +51,43 @@ class Solution:
     p: jax.Array
     status: jax.Array
     stats: dict
+    error_estimate: jax.Array
+    dense: object = None
+
+    def evaluate(self, t):
+        """``(q, p)`` at the times ``t`` (scalar or 1-D) in ``[0, n_steps h]``: the saved states
+        at the nodes t = n h, each element's polynomial in between (one run, dense output).
+
+        Returns:
+            ``(q, p)``, each shape ``t.shape + (d,)``.
+        """
+        if self.dense is None:
+            raise ValueError("evaluate needs the element polynomials: integrate(..., dense=True).")
+        h, z, W = self.dense.h, self.dense.z, self.dense.W
+        if jnp.ndim(h) != 0:
+            raise ValueError("evaluate works on one run; index a batched Solution first.")
+        t = jnp.asarray(t, z.dtype)
+        if t.ndim > 1:
+            raise ValueError(f"t must be a scalar or 1-D, got shape {t.shape}.")
+        end = W.shape[0] * h
+        if not isinstance(t, jax.core.Tracer) and not isinstance(end, jax.core.Tracer):
+            if not bool(jnp.all((t >= -1e-12 * end) & (t <= end * (1 + 1e-12)))):
+                raise ValueError(f"t must lie in [0, {float(end)}] (n_steps h), got values outside.")
+        q, p = _evaluate(h, z, W, jnp.atleast_1d(t))
+        return q.reshape(t.shape + q.shape[-1:]), p.reshape(t.shape + p.shape[-1:])
 
 
-def bind_args(H, args):
-    return H if args is None else (lambda q, p: H(q, p, args))
-
-
-def input_status(q0, p0, h):
-    ok = jnp.isfinite(h) & (h > 0) & jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(p0))
-    return jnp.where(ok, Status.SUCCESS, Status.INVALID_INPUT).astype(jnp.int32)
-
-
-def select(mask, x, y):
-    """``x`` where ``mask``, else ``y``, per run: ``mask`` has shape () (one run) or ``(B,)``
-    (a batch; x and y have a leading axis B)."""
-    return jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - mask.ndim)), x, y)
-
-
-def nan_if_failed(x, status):
-    """``x`` where ``status`` is SUCCESS, NaN elsewhere (per run, as in ``select``)."""
-    return select(status != Status.SUCCESS, jnp.full_like(x, jnp.nan), x)
-
-
-def solve_element(method, H, q0, p0, h, previous, max_iterations, skip=False):
-    """Solve one element; returns ``(q1, p1, Z, iterations, status)``.
-
-    The predictor is the previous element's polynomial extrapolated, or the constant
-    state when that has the larger residual (it can overshoot at large h omega). With
-    ``skip`` (an earlier element failed) nothing is solved.
-    """
-    residual = lambda Z: method.residual(H, q0, p0, Z, h)
-    Z0 = method.initial_guess(q0, p0)
-    if previous is not None:
-        Z_extrapolated = method.initial_guess(q0, p0, previous)
-        r0, r1 = (jnp.max(jnp.abs(residual(Z))) for Z in (Z0, Z_extrapolated))
-        Z0 = jnp.where(r1 < r0, Z_extrapolated, Z0)
-    scale = jax.lax.stop_gradient(jnp.maximum(jnp.max(jnp.abs(q0)), jnp.max(jnp.abs(p0))))
-    Z, iterations, status = solve_implicit(residual, Z0, max_iterations, scale, skip)
-    q1, p1 = method.end_state(H, q0, p0, Z, h)
-    finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
-    status = jnp.where((status == 0) & ~finite, Status.NONFINITE, status).astype(jnp.int32)
-    return q1, p1, Z, iterations, status
+@jax.jit
+def _evaluate(h, z, W, t):
+    N = W.shape[0]
+    x = t / h
+    node = jnp.round(x)
+    at_node = jnp.abs(x - node) <= 4 * jnp.finfo(z.dtype).eps * jnp.maximum(1.0, x)
+    n = jnp.clip(jnp.floor(x), 0, N - 1).astype(jnp.int32)
+    P = _basis.legendre_values(jnp.clip(x - n, 0.0, 1.0), W.shape[1])
+    inside = z[n] + jnp.einsum("tj,tjd->td", P, W[n])
+    values = jnp.where(at_node[:, None], z[jnp.clip(node, 0, N).astype(jnp.int32)], inside)
+    return jnp.split(values, 2, axis=-1)
 
 
 def prepare(H, q0, p0, method, h, args):
@@ -80,13 +97,15 @@ def prepare(H, q0, p0, method, h, args):
     _checks.check_step_size(h)
     fn = bind_args(H, args)
     _checks.check_scalar_output(fn, q0, p0)
+    _checks.check_premise(method, fn, q0, p0)
     return q0, p0, jnp.asarray(h, q0.dtype)
 
 
 def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS):
     """One time element: ``(q, p) -> (q1, p1)``.
 
-    A failed solve returns NaN, never a plausible state; ``integrate`` reports why.
+    A failed solve returns NaN states (never a plausible one); ``integrate(..., n_steps=1)``
+    gives its status and message.
 
     Args:
         H: ``H(q, p)`` or ``H(q, p, args)`` returning a scalar (``L(q, qdot)`` for LagrangianVI).
@@ -98,14 +117,14 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEW
     """
     q, p, h = prepare(H, q, p, method, h, args)
     _checks.check_iterations(max_newton_iterations)
-    return _step(H, q, p, method, h, args, max_newton_iterations)
+    q1, p1, status = _step(H, q, p, method, h, args, max_newton_iterations)
+    return nan_if_failed(q1, status), nan_if_failed(p1, status)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
 def _step(H, q, p, method, h, args, max_iterations):
-    q1, p1, _, _, status = solve_element(method, bind_args(H, args), q, p, h, None, max_iterations)
-    status = jnp.maximum(status, input_status(q, p, h))
-    return nan_if_failed(q1, status), nan_if_failed(p1, status)
+    q1, p1, _, _, status = solve_element(method, H, q, p, h, args, max_iterations)
+    return q1, p1, jnp.maximum(status, input_status(q, p, h))
 
 
 def integrate(
@@ -120,6 +139,8 @@ def integrate(
     save_every=1,
     max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
     checkpoint=False,
+    dense=False,
+    progress=False,
 ):
     """Integrate Hamilton's equations over ``n_steps`` elements of size ``h``.
 
@@ -137,97 +158,55 @@ def integrate(
         max_newton_iterations: iteration cap per element. Static.
         checkpoint: rematerialise each saved block in reverse mode: a gradient then stores
             one state per save instead of every element's residuals. Static.
+        dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps). Static.
+        progress: show a progress bar (tqdm if installed, else lines on stderr), ticked from
+            inside the compiled loop about 200 times per run. Static.
     Returns:
         ``Solution`` with ``m = n_steps // save_every + 1`` saved states.
     """
     q0, p0, h = prepare(H, q0, p0, method, h, args)
     _checks.check_counts(n_steps, save_every)
     _checks.check_iterations(max_newton_iterations)
-    return _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_newton_iterations, checkpoint)
+    return _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_newton_iterations, checkpoint, bool(dense),
+                      bool(progress))
 
 
-def start_carry(q0, p0, guess, status):
-    """The scan carry before the first element, and ``start``, the stand-in after a failure."""
-    zero = jnp.zeros(status.shape, jnp.int32)
-    start = (q0, p0, (q0, p0, guess))
-    return dict(q=q0, p=p0, previous=start[2], status=status, total=zero, most=zero), start
-
-
-def advance(carry, start, q1, p1, Z, iterations, status):
-    """The carry after one element. The first failure's status is kept; from then on the run
-    carries its finite ``start`` as a stand-in and is not solved again, so no NaN enters the
-    linearisation and, under vmap, the reverse-mode gradients of the other runs stay finite
-    (0 * NaN would not). Reported states are NaN (``nan_if_failed``)."""
-    status = jnp.where(carry["status"] == Status.SUCCESS, status, carry["status"])
-    now = (q1, p1, (carry["q"], carry["p"], Z))
-    q1, p1, previous = jax.tree.map(lambda a, b: select(status != Status.SUCCESS, a, b), start, now)
-    return dict(carry, q=q1, p=p1, previous=previous, status=status, total=carry["total"] + iterations,
-                most=jnp.maximum(carry["most"], iterations))
-
-
-def chain(element, carry, *, n_blocks, block_size, checkpoint):
-    """``carry -> element(carry)`` over ``n_blocks * block_size`` elements by a nested ``lax.scan``.
-
-    ``checkpoint=True`` rematerialises each block in reverse mode, so a gradient stores one
-    carry per block instead of the residuals of every element.
-
-    Returns:
-        ``(final, (qs, ps))``: the last carry with its ``q, p`` NaN where failed, and the states
-        at the end of each block (block axis first), NaN where failed.
-    """
-
-    def reported(carry):
-        return nan_if_failed(carry["q"], carry["status"]), nan_if_failed(carry["p"], carry["status"])
-
-    def block(carry, _):
-        carry, _ = jax.lax.scan(lambda c, _: (element(c), None), carry, None, length=block_size)
-        return carry, reported(carry)
-
-    if checkpoint:
-        block = jax.checkpoint(block)
-    carry, saved = jax.lax.scan(block, carry, None, length=n_blocks)
-    q, p = reported(carry)
-    return dict(carry, q=q, p=p), saved
-
-
-def march(method, fn, q0, p0, h, *, n_blocks, block_size, max_iterations, checkpoint=False):
-    """Chain ``n_blocks * block_size`` elements of one run (see ``chain``).
-
-    Returns:
-        ``(final, (qs, ps))``: ``final`` holds ``q, p, status, total, most``; ``qs, ps``
-        have shape ``(n_blocks, d)``, the state at the end of each block.
-    """
-    carry, start = start_carry(q0, p0, method.initial_guess(q0, p0), input_status(q0, p0, h))
-
-    def element(c):
-        solved = solve_element(method, fn, c["q"], c["p"], h, c["previous"], max_iterations,
-                               c["status"] != Status.SUCCESS)
-        return advance(c, start, *solved)
-
-    return chain(element, carry, n_blocks=n_blocks, block_size=block_size, checkpoint=checkpoint)
-
-
-@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9))
-def _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_iterations, checkpoint):
-    n_saves = n_steps // save_every
-    final, (qs, ps) = march(
-        method, bind_args(H, args), q0, p0, h, n_blocks=n_saves, block_size=save_every,
-        max_iterations=max_iterations, checkpoint=checkpoint,
-    )
+def solution(final, saved, kept, q0, p0, h, block_size):
+    """The ``Solution`` of one run from ``march``'s outputs."""
+    qs, ps = saved
+    n_saves = qs.shape[0]
+    dense = None
+    if kept is not None:
+        starts, W = kept
+        z_end = jnp.concatenate([final["q"], final["p"]])
+        dense = DenseOutput(h=h, z=jnp.concatenate([starts, z_end[None]]), W=W)
     return Solution(
-        t=jnp.arange(n_saves + 1, dtype=q0.dtype) * (save_every * h),
+        t=jnp.arange(n_saves + 1, dtype=q0.dtype) * (block_size * h),
         q=jnp.concatenate([q0[None], qs]),
         p=jnp.concatenate([p0[None], ps]),
         status=final["status"],
-        stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"]},
+        stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"],
+               "batch_newton_iterations": final["trips"]},
+        error_estimate=final["estimate"],
+        dense=dense,
     )
+
+
+@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9, 10, 11))
+def _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_iterations, checkpoint, dense, progress):
+    final, saved, kept = march(
+        method, H, q0, p0, h, args, n_blocks=n_steps // save_every, block_size=save_every,
+        max_iterations=max_iterations, checkpoint=checkpoint, dense=dense, progress=progress,
+    )
+    return solution(final, saved, kept, q0, p0, h, save_every)
 
 
 def amplification_matrix(H, q, p, *, method, h, args=None):
     """A = d z_1 / d z_0 of one element, by ``jax.jacfwd`` through the implicit solve [GBS, eq. (48)].
 
     For a quadratic H this is the amplification matrix of the two-level scheme
-    ``z_{k+1} = A z_0``; in general it is the Jacobian of the one-step map.
+    ``z_{k+1} = A z_0``; in general it is the Jacobian of the one-step map. A failed solve
+    gives a matrix of NaN.
 
     Returns:
         shape ``(2d, 2d)`` in the ordering ``z = (q, p)``.
@@ -236,6 +215,8 @@ def amplification_matrix(H, q, p, *, method, h, args=None):
     d = q.shape[0]
 
     def one_step(z):
-        return jnp.concatenate(_step(H, z[:d], z[d:], method, h, args, DEFAULT_MAX_NEWTON_ITERATIONS))
+        q1, p1, status = _step(H, z[:d], z[d:], method, h, args, DEFAULT_MAX_NEWTON_ITERATIONS)
+        return jnp.concatenate([q1, p1]), status
 
-    return jax.jacfwd(one_step)(jnp.concatenate([q, p]))
+    A, status = jax.jacfwd(one_step, has_aux=True)(jnp.concatenate([q, p]))
+    return nan_if_failed(A, status)

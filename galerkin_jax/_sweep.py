@@ -1,10 +1,11 @@
 """Batched parameter sweeps: one scene over many configurations in one jitted call.
 
-The batch is solved by ``_batched``'s batch-aware simplified Newton method (Jacobians kept
-across elements, refreshed per member on demand). Diagnostics are folded into the scan
-carry, so a sweep stores no trajectory unless ``save_every`` asks for one. Each
-configuration has its own status and its own iterates: a failed one turns NaN, stops
-costing Newton iterations and leaves the others' values and gradients as they are alone.
+A sweep is ``jax.vmap`` of the single-run ``march`` over the configurations: every member
+runs exactly the code of ``integrate``, and the root finder folds the batch into one loop
+(``_solve``). Diagnostics are folded into the scan carry, so a sweep stores no trajectory
+unless ``save_every`` asks for one. Each configuration has its own status and its own
+iterates: a failed one turns NaN, stops costing iterations and leaves the others' values
+and gradients as they are alone.
 """
 
 import functools
@@ -16,9 +17,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import _checks
-from ._batched import march_batched
-from ._configs import Configs
-from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, Solution, bind_args, nan_if_failed
+from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, solution
+from ._march import bind_args, march, nan_if_failed
 from ._pytree import pytree_dataclass
 
 
@@ -33,6 +33,7 @@ class SweepResult:
         final_error: max |(q_N, p_N) - reference| or None.
         q, p: the final state, ``(B, d)``.
         status: ``Status`` codes; NaN diagnostics go with a nonzero status.
+        error_estimate: the largest estimated local error of each run (``Solution.error_estimate``).
         num_newton_iterations, max_newton_iterations: total and largest per element.
         batch_newton_iterations: the iterations the batch ran, the sum over elements of the
             largest member count (the same for every member; ``1 - num / batch`` is the share
@@ -47,6 +48,7 @@ class SweepResult:
     q: jax.Array
     p: jax.Array
     status: jax.Array
+    error_estimate: jax.Array
     num_newton_iterations: jax.Array
     max_newton_iterations: jax.Array
     batch_newton_iterations: jax.Array
@@ -59,23 +61,20 @@ def _relative_change(value, initial):
 
 
 def _diagnostics(H, invariants, q0, p0, args):
-    """``(acc0, observe)``: the largest relative changes of H and of the invariants, folded
-    into the scan carry by the batched ``observe(acc, q, p)``; the initial values and args
-    are closed over, not carried."""
+    """``(acc0, observe)`` for one run: the largest relative changes of H and of the
+    invariants, folded into the scan carry by ``observe(acc, q, p)``."""
+    fn = bind_args(H, args)
+    H0, I0s = fn(q0, p0), tuple(I(q0, p0) for I in invariants.values())
 
-    def initial(q, p, a):
-        return bind_args(H, a)(q, p), tuple(I(q, p) for I in invariants.values())
-
-    def observe_one(acc, q, p, start, args):
-        (energy, others), (H0, I0s) = acc, start
-        energy = jnp.fmax(energy, _relative_change(bind_args(H, args)(q, p), H0))
+    def observe(acc, q, p):
+        energy, others = acc
+        # fmax ignores NaN: a failed run is flagged by its status and made NaN afterwards
+        energy = jnp.fmax(energy, _relative_change(fn(q, p), H0))
         others = tuple(jnp.fmax(e, _relative_change(I(q, p), I0)) for e, I, I0 in zip(others, invariants.values(), I0s))
-        # fmax ignores NaN: a failed run is flagged by its status and made NaN below
         return energy, others
 
-    start = jax.vmap(initial)(q0, p0, args)
-    zero = jnp.zeros(q0.shape[0], q0.dtype)
-    return (zero, tuple(zero for _ in invariants)), lambda acc, q, p: jax.vmap(observe_one)(acc, q, p, start, args)
+    zero = jnp.zeros((), q0.dtype)
+    return (zero, tuple(zero for _ in invariants)), observe
 
 
 def _block_size(n_steps, save_every, checkpoint):
@@ -87,59 +86,33 @@ def _block_size(n_steps, save_every, checkpoint):
     return min(divisors, key=lambda b: abs(b - n_steps**0.5))
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5))
-def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, configs, reference):
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5, 6))
+def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, progress, configs, reference):
     invariants = dict(invariants)
-    c = configs
-    acc0, observe = _diagnostics(H, invariants, c.q0, c.p0, c.args)
     block = _block_size(n_steps, save_every, checkpoint)
-    final, (qs, ps) = march_batched(
-        c.method, H, c.args, c.q0, c.p0, c.h, n_blocks=n_steps // block, block_size=block,
-        max_iterations=max_iterations, observe=observe, acc0=acc0, checkpoint=checkpoint,
-    )
+
+    def one(method, q0, p0, h, args):
+        acc0, observe = _diagnostics(H, invariants, q0, p0, args)
+        final, saved, _ = march(method, H, q0, p0, h, args, n_blocks=n_steps // block, block_size=block,
+                                max_iterations=max_iterations, checkpoint=checkpoint, observe=observe, acc0=acc0,
+                                progress=progress)
+        return final, (solution(final, saved, None, q0, p0, h, block) if save_every else None)
+
+    c = configs
+    final, runs = jax.vmap(one)(c.method, c.q0, c.p0, c.h, c.args)
     energy, others = final["acc"]
     final_error = None
     if reference is not None:
         final_error = jnp.max(jnp.abs(jnp.concatenate([final["q"] - reference[0], final["p"] - reference[1]], axis=1)), axis=1)
-    solution = None
-    if save_every:
-        times = jnp.arange(n_steps // block + 1, dtype=c.q0.dtype)
-        solution = Solution(
-            t=times[None, :] * (block * c.h[:, None]),
-            q=jnp.concatenate([c.q0[:, None], qs], axis=1), p=jnp.concatenate([c.p0[:, None], ps], axis=1),
-            status=final["status"],
-            stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"]},
-        )
     return SweepResult(
         energy_error=nan_if_failed(energy, final["status"]),
         invariant_errors={name: nan_if_failed(e, final["status"]) for name, e in zip(invariants, others)},
         final_error=final_error,
-        q=final["q"], p=final["p"], status=final["status"],
+        q=final["q"], p=final["p"], status=final["status"], error_estimate=final["estimate"],
         num_newton_iterations=final["total"], max_newton_iterations=final["most"],
-        batch_newton_iterations=jnp.broadcast_to(final["batch"], final["total"].shape),
-        solution=solution,
+        batch_newton_iterations=final["trips"],
+        solution=runs,
     )
-
-
-def _check(H, configs, n_steps, save_every, invariants, reference):
-    _checks.check_function(H)
-    if not isinstance(configs, Configs):
-        raise TypeError(f"configs must be gj.Configs (see gj.grid), got {type(configs).__name__}.")
-    B = configs.size
-    if configs.q0.ndim != 2 or configs.q0.shape != configs.p0.shape or configs.q0.shape[0] != B:
-        raise ValueError(f"configs: q0 and p0 need shape (B, d) with B = {B}, got {configs.q0.shape}, {configs.p0.shape}.")
-    for leaf in jax.tree_util.tree_leaves((configs.method, configs.args)):
-        if jnp.ndim(leaf) == 0 or jnp.shape(leaf)[0] != B:
-            raise ValueError(f"configs: every method and args leaf needs a leading axis of size B = {B}.")
-    if not isinstance(configs.h, jax.core.Tracer) and not np.all(np.asarray(configs.h) > 0):
-        raise ValueError("configs: every h must be finite and > 0.")
-    _checks.check_counts(n_steps, n_steps or 1 if save_every is None else save_every)
-    if n_steps < 1:
-        raise ValueError("n_steps must be >= 1.")
-    if not all(callable(I) for I in invariants.values()):
-        raise TypeError("invariants must map names to functions I(q, p).")
-    if reference is not None and (len(reference) != 2 or jnp.shape(reference[0]) != configs.q0.shape):
-        raise ValueError(f"reference must be (q_ref, p_ref), each of shape {configs.q0.shape}.")
 
 
 def _shard(tree, devices):
@@ -164,6 +137,7 @@ def sweep(
     max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
     devices=None,
     checkpoint=False,
+    progress=False,
 ):
     """Run every configuration of ``configs`` for ``n_steps`` elements in one compiled call.
 
@@ -181,17 +155,19 @@ def sweep(
             or of the divisor of ``n_steps`` nearest its square root: choose an ``n_steps``
             with one), so that a gradient stores one carry per block instead of every
             element's residuals. Static.
+        progress: show a progress bar over the elements (all members advance together). Static.
     Returns:
         ``SweepResult`` with a leading axis B on every field.
     """
+    configs = _checks.check_sweep(H, configs, n_steps, save_every, invariants, reference)
     invariants = dict(invariants or {})
-    _check(H, configs, n_steps, save_every, invariants, reference)
     _checks.check_iterations(max_newton_iterations)
     reference = None if reference is None else tuple(jnp.asarray(r) for r in reference)
     inputs = (configs, reference)
     if devices is not None:
         inputs = _shard(inputs, devices)
-    result = _run(H, tuple(invariants.items()), n_steps, save_every, max_newton_iterations, checkpoint, *inputs)
+    result = _run(H, tuple(invariants.items()), n_steps, save_every, max_newton_iterations, checkpoint, bool(progress),
+                  *inputs)
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
     return result

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _basis
+from ._defect import local_error
 from ._galerkin import check_degree, check_rule
 from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
@@ -27,7 +28,7 @@ def _rule_arrays(rule, dtype):
 
 def _continued(C, s):
     """Legendre coefficients of a degree s - 1 series continued one element ahead."""
-    return jnp.asarray(_basis.shift_matrix(s), C.dtype) @ C
+    return _basis.combine(_basis.shift_matrix(s), C)
 
 
 @pytree_dataclass
@@ -71,7 +72,7 @@ class GalerkinVI:
         c, mu = jnp.split(Z, 2)
         P_at = _basis.legendre_values(alpha, s)
         A_at = _basis.legendre_antiderivatives(alpha, s)
-        Q, P = q0[None, :] + A_at @ c, p0[None, :] + P_at @ mu
+        Q, P = q0[None, :] + _basis.combine(A_at, c), p0[None, :] + _basis.combine(P_at, mu)
         dHdq, dHdp = jax.vmap(jax.grad(H, argnums=(0, 1)))(Q, P)
         return w, P_at, A_at, dHdp, -dHdq
 
@@ -81,14 +82,23 @@ class GalerkinVI:
         scale = jnp.asarray(_basis.test_scale(self.s), Z.dtype)[:, None]
         first = jnp.asarray(np.eye(self.s)[0], Z.dtype)
         c, mu = jnp.split(Z, 2)
-        r_c = c - h * scale * (P_at.T @ (w[:, None] * f))
-        r_mu = mu - h * scale * ((first[None, :] - A_at).T @ (w[:, None] * g))
+        r_c = c - h * scale * _basis.combine(P_at.T, w[:, None] * f)
+        r_mu = mu - h * scale * _basis.combine((first[None, :] - A_at).T, w[:, None] * g)
         return jnp.concatenate([r_c, r_mu])
 
-    def end_state(self, H, q0, p0, Z, h):
-        """Qhat_{n+1} = q_n + c_0 (2.29), Phat_{n+1} = p_n + h int g (2.32)."""
+    def increment(self, H, q0, p0, Z, h):
+        """Qhat_{n+1} - q_n = c_0 (2.29), Phat_{n+1} - p_n = h int g (2.32)."""
         w, _, _, _, g = self._stages(H, q0, p0, Z)
-        return q0 + Z[0], p0 + h * (w @ g)
+        return Z[0], h * _basis.combine(w, g)
+
+    def polynomial(self, H, q0, p0, Z, h):
+        """Legendre coefficients of (Q - q_n, P - p_n), shape ``(s + 1, 2d)`` (P has degree s - 1)."""
+        c, mu = jnp.split(Z, 2)
+        Q = _basis.combine(_basis.antiderivative_matrix(self.s), c)
+        return jnp.concatenate([Q, jnp.concatenate([mu, jnp.zeros_like(mu[:1])])], axis=1)
+
+    def local_error(self, H, q0, p0, Z, h):
+        return local_error(H, q0, p0, self.polynomial(H, q0, p0, Z, h), jnp.concatenate(self.increment(H, q0, p0, Z, h)), h)
 
 
 @pytree_dataclass
@@ -126,7 +136,7 @@ class LagrangianVI:
         alpha, w = _rule_arrays(self.quadrature, v.dtype)
         P_at = _basis.legendre_values(alpha, self.s)
         A_at = _basis.legendre_antiderivatives(alpha, self.s)
-        Q, Qdot = q0[None, :] + h * (A_at @ v), P_at @ v
+        Q, Qdot = q0[None, :] + h * _basis.combine(A_at, v), _basis.combine(P_at, v)
         Pdot, P = jax.vmap(jax.grad(L, argnums=(0, 1)))(Q, Qdot)  # eq. (2.12)
         return w, P_at, A_at, P, Pdot
 
@@ -135,11 +145,28 @@ class LagrangianVI:
         w, P_at, A_at, P, Pdot = self._stages(L, q0, v, h)
         scale = jnp.asarray(_basis.test_scale(self.s), v.dtype)[:, None]
         first = jnp.asarray(np.eye(self.s)[0], v.dtype)
-        momentum = P_at.T @ (w[:, None] * P) - first[:, None] * p0[None, :]
-        impulse = (first[None, :] - A_at).T @ (w[:, None] * Pdot)
+        momentum = _basis.combine(P_at.T, w[:, None] * P) - first[:, None] * p0[None, :]
+        impulse = _basis.combine((first[None, :] - A_at).T, w[:, None] * Pdot)
         return scale * (momentum - h * impulse)
 
-    def end_state(self, L, q0, p0, v, h):
-        """q_{n+1} = q_n + h int Qdot, p_{n+1} = p_n + h int Pdot, eq. (2.16b)."""
+    def increment(self, L, q0, p0, v, h):
+        """q_{n+1} - q_n = h int Qdot, p_{n+1} - p_n = h int Pdot, eq. (2.16b)."""
         w, _, _, _, Pdot = self._stages(L, q0, v, h)
-        return q0 + h * v[0], p0 + h * (w @ Pdot)
+        return h * v[0], h * _basis.combine(w, Pdot)
+
+    def polynomial(self, L, q0, p0, v, h):
+        """Legendre coefficients of (Q - q_n, P - p_n), shape ``(s + 1, 2d)``: Q exactly, and the
+        momentum P = dL/dqdot(Q, Qdot) (not a polynomial, Remark 2.1) projected onto P^s by
+        Gauss quadrature with s + 1 points."""
+        T = jnp.asarray(_basis.antiderivative_matrix(self.s), v.dtype)
+        x, w = np.polynomial.legendre.leggauss(self.s + 1)
+        alpha, w = jnp.asarray((x + 1) / 2, v.dtype), jnp.asarray(w / 2, v.dtype)
+        Q = q0[None, :] + h * (_basis.legendre_antiderivatives(alpha, self.s) @ v)
+        P = jax.vmap(jax.grad(L, argnums=1))(Q, _basis.legendre_values(alpha, self.s) @ v)
+        projection = jnp.asarray(_basis.test_scale(self.s + 1), v.dtype)[:, None] * (
+            _basis.legendre_values(alpha, self.s + 1).T @ (w[:, None] * (P - p0[None, :])))
+        return jnp.concatenate([h * (T @ v), projection], axis=1)
+
+    def local_error(self, L, q0, p0, v, h):
+        """NaN: the estimate needs Hamilton's field, and the method is given a Lagrangian."""
+        return jnp.asarray(jnp.nan, v.dtype)

@@ -9,7 +9,7 @@ from scipy.integrate import solve_ivp
 import galerkin_jax as gj
 import helpers
 from galerkin_jax import _basis
-from galerkin_jax._integrate import solve_element
+from galerkin_jax._march import solve_element
 
 KEPLER = helpers.kepler(0.5)
 SCENES = {"kepler": KEPLER, "pendulum": helpers.pendulum(), "non-separable": helpers.non_separable()}

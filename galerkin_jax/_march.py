@@ -1,0 +1,152 @@
+"""The scan skeleton every run uses: one element after another, in blocks, for one run.
+
+``march`` chains the elements of one run by a nested ``lax.scan`` (outer over blocks,
+inner over the elements of a block); ``integrate`` calls it once and ``sweep`` vmaps it, so
+a batch runs exactly the code of a single run (the root finder in ``_solve`` folds vmap
+axes into its own batch axis). The carry holds the state with the compensation of its
+summation (Kahan: the increments of many small elements are added without losing their
+low bits, so round-off grows like sqrt(n)), the predictor's history, the iteration matrix,
+the first failure's status, Newton counts and the largest local error estimate.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _progress
+from ._solve import Status, initial_matrix, solve
+
+
+def bind_args(H, args):
+    return H if args is None else (lambda q, p: H(q, p, args))
+
+
+def input_status(q0, p0, h):
+    ok = jnp.isfinite(h) & (h > 0) & jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(p0))
+    return jnp.where(ok, Status.SUCCESS, Status.INVALID_INPUT).astype(jnp.int32)
+
+
+def nan_if_failed(x, status):
+    """``x`` where ``status`` is SUCCESS, NaN elsewhere; ``status`` has shape () or ``x.shape[:1]``."""
+    failed = (status != Status.SUCCESS).reshape(status.shape + (1,) * (jnp.ndim(x) - status.ndim))
+    return jnp.where(failed, jnp.nan, x)
+
+
+def element_residual(H):
+    """``(Z, params) -> R``, the element equations with everything they depend on in ``params``."""
+
+    def fn(Z, params):
+        method, q0, p0, h, args = params
+        return method.residual(bind_args(H, args), q0, p0, Z, h)
+
+    return fn
+
+
+def solve_element(method, H, q, p, h, args, max_iterations):
+    """One element from the constant predictor, without history: ``(q1, p1, Z, iterations, status)``."""
+    fn, params = element_residual(H), (method, q, p, h, args)
+    guess = method.initial_guess(q, p)
+    scale = jnp.maximum(jnp.max(jnp.abs(q)), jnp.max(jnp.abs(p)))
+    matrix = initial_matrix(guess)
+    Z, _, iterations, status, _ = solve(fn, params, guess, guess, matrix, scale, jnp.asarray(False), max_iterations)
+    dq, dp = method.increment(bind_args(H, args), q, p, Z, h)
+    return q + dq, p + dp, Z, iterations, status
+
+
+def compensated_add(x, dx, c):
+    """Kahan summation: ``x + dx`` with ``c`` the low bits lost so far; returns ``(sum, c)``."""
+    y = dx - c
+    s = x + y
+    return s, (s - x) - y
+
+
+# the continuation's misses, extrapolated: none before the second element, the last one
+# for the third, linearly from the last two after that
+_MISS_WEIGHTS = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [2.0, -1.0]])
+
+
+def predictor(method, q, p, previous, misses, count):
+    """The previous element's polynomial continued one element ahead, plus the extrapolated
+    error of that continuation (its 'miss' varies smoothly from element to element: the
+    linear extrapolation leaves O(h^2) of it). Returns ``(Z_pred, Z_continued, Z_constant)``."""
+    continued = method.initial_guess(q, p, previous)
+    weights = jnp.asarray(_MISS_WEIGHTS, q.dtype)[count]
+    return continued + weights[0] * misses[0] + weights[1] * misses[1], continued, method.initial_guess(q, p)
+
+
+def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, checkpoint=False, dense=False,
+          observe=None, acc0=None, progress=False):
+    """Chain ``n_blocks * block_size`` elements of one run.
+
+    Args:
+        observe: optional ``(acc, q, p) -> acc`` folded over the states after each element,
+            starting from ``acc0`` (sweep diagnostics).
+        dense: also return, per element, its start state and polynomial coefficients.
+        progress: drive a progress bar from inside the loop (``_progress``).
+    Returns:
+        ``(final, saved, polynomials)``: ``final`` holds ``q, p, status, total, most, trips,
+        estimate, acc``; ``saved = (qs, ps)`` of shape ``(n_blocks, d)``, the state at the
+        end of each block; ``polynomials`` is ``(Z_starts, W)`` per element or None. States
+        and the estimate of a failed run are NaN.
+    """
+    fn = element_residual(H)
+    H_bound = bind_args(H, args)
+    guess = method.initial_guess(q0, p0)
+    status0 = input_status(q0, p0, h)
+    zero = jnp.zeros((), jnp.int32)
+    start = dict(q=q0, p=p0, previous=(q0, p0, guess))
+    carry = dict(
+        start, cq=jnp.zeros_like(q0), cp=jnp.zeros_like(p0), misses=(jnp.zeros_like(guess),) * 2, count=zero,
+        matrix=initial_matrix(guess), status=status0, total=zero, most=zero,
+        trips=zero, estimate=jnp.zeros((), q0.dtype), acc=acc0, done=zero,
+    )
+    total = n_blocks * block_size
+
+    def element(c):
+        q, p, failed = c["q"], c["p"], c["status"] != Status.SUCCESS
+        Z_pred, continued, constant = predictor(method, q, p, c["previous"], c["misses"], c["count"])
+        scale = jnp.maximum(jnp.max(jnp.abs(q)), jnp.max(jnp.abs(p)))
+        Z, matrix, iterations, status, trips = solve(
+            fn, (method, q, p, h, args), Z_pred, constant, c["matrix"], scale, failed, max_iterations)
+        dq, dp = method.increment(H_bound, q, p, Z, h)
+        q1, cq = compensated_add(q, dq, c["cq"])
+        p1, cp = compensated_add(p, dp, c["cp"])
+        # an estimate, not a function to differentiate (and no 0 * inf from a failed run's)
+        frozen = jax.lax.stop_gradient((q, p, Z, h, args))
+        estimate = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4]))
+        finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
+        status = jnp.where((status == Status.SUCCESS) & ~finite, Status.NONFINITE, status)
+        status = jnp.where(failed, c["status"], status).astype(jnp.int32)  # the first failure is kept
+        # after a failure the run carries its finite start as a stand-in and is not solved
+        # again: no NaN enters the linearisation, nor (under vmap) the others' gradients
+        now = dict(q=q1, p=p1, previous=(q, p, Z))
+        now = jax.tree.map(lambda a, b: jnp.where(status == Status.SUCCESS, b, a), start, now)
+        misses = (jnp.where(c["count"] >= 1, Z - continued, c["misses"][0]), c["misses"][0])
+        acc = c["acc"] if observe is None else observe(c["acc"], now["q"], now["p"])
+        new = dict(
+            c, **now, cq=cq, cp=cp, misses=misses, count=jnp.minimum(c["count"] + 1, 3), matrix=matrix,
+            status=status, total=c["total"] + iterations, most=jnp.maximum(c["most"], iterations),
+            trips=c["trips"] + trips, estimate=jnp.maximum(c["estimate"], estimate), acc=acc, done=c["done"] + 1,
+        )
+        if progress:
+            _progress.report(new["done"], total, _progress.stride(total))
+        kept = None
+        if dense:
+            kept = (jnp.concatenate([q, p]), method.polynomial(H_bound, q, p, Z, h))
+        return new, kept
+
+    def reported(c):
+        return nan_if_failed(c["q"], c["status"]), nan_if_failed(c["p"], c["status"])
+
+    def block(c, _):
+        c, kept = jax.lax.scan(lambda c, _: element(c), c, None, length=block_size)
+        return c, (reported(c), kept)
+
+    if checkpoint:
+        block = jax.checkpoint(block)
+    final, (saved, kept) = jax.lax.scan(block, carry, None, length=n_blocks)
+    q, p = reported(final)
+    final = dict(final, q=q, p=p, estimate=nan_if_failed(final["estimate"], final["status"]))
+    if kept is not None:
+        kept = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), kept)
+    return final, saved, kept
