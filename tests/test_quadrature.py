@@ -64,8 +64,44 @@ def test_rule_is_a_pytree_that_stacks_and_vmaps():
         (lambda: gj.QuadratureRule([-0.1], [1.0]), r"\[0, 1\]"),
         (lambda: gj.QuadratureRule([0.2, 0.8], [1.0]), "same non-empty shape"),
         (lambda: gj.QuadratureRule([np.nan], [1.0]), "finite"),
+        (lambda: gj.QuadratureRule([0.25, 0.75], [0.5, 1.0]), r"weights must sum to 1 .* weights \[0.5 1. \] sum to 1.5"),
+        (lambda: gj.QuadratureRule([0.5], [0.0]), "weights must sum to 1"),
+        (lambda: gj.QuadratureRule([[0.5], [0.5]], [[1.0], [0.9]]), r"weights \[0.9\] \(row 1\) sum to 0.9"),
     ],
 )
 def test_bad_rules_raise_value_error(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_weight_sum_tolerance_is_1e_12_in_float64():
+    """Rules found by root finding carry up to ~2000 eps in their sum (gauss_radau(40): 1800 eps
+    = 4e-13), and must pass; a sum off by 1e-11 changes the scheme above round-off."""
+    for n in (13, 25, 34, 40):
+        gj.gauss_radau(n)
+    gj.QuadratureRule([0.3, 0.7], [0.5, 0.5 + 5e-13])
+    with pytest.raises(ValueError, match="sum to 1"):
+        gj.QuadratureRule([0.3, 0.7], [0.5, 0.5 + 1e-11])
+
+
+def test_stacked_and_padded_rules_are_checked_row_by_row():
+    stacked = gj.QuadratureRule(np.array([[0.2, 0.8], [0.5, 0.5]]), np.array([[0.5, 0.5], [1.0, 0.0]]))
+    assert stacked.points.shape == (2, 2)
+    padded = gj.pad_rule(gj.gauss_legendre(2), 5)  # zero weights: the sum is unchanged
+    assert float(np.sum(padded.weights)) == pytest.approx(1.0, abs=1e-15)
+    method = gj.stack_methods([gj.CG(1, gj.midpoint()), gj.CG(1, gj.gauss_lobatto(4))])
+    np.testing.assert_allclose(np.sum(method.quadrature.weights, axis=1), 1.0, atol=1e-15)
+
+
+def test_traced_rules_and_rebuilt_pytrees_are_not_checked():
+    """Leaves rebuilt by jit, grad and tree maps (cotangents, zeros) are not rules: no check."""
+    params = (jnp.array([-1.0, 1.0]), jnp.array([0.0, 0.3]))
+    loss = lambda p: jnp.sum(gj.rule_from_params(p).weights * gj.rule_from_params(p).points ** 2)
+    assert np.all(np.isfinite(jax.grad(loss)(params)[1]))
+    assert float(jnp.sum(gj.rule_from_params(params).weights)) == pytest.approx(1.0, abs=1e-15)
+    grad = jax.grad(lambda r: -jnp.sum(r.points * r.weights))(gj.gauss_legendre(2))
+    assert isinstance(grad, gj.QuadratureRule)  # points -w < 0, weights summing to -1: no error
+    np.testing.assert_allclose(grad.weights, -np.asarray(gj.gauss_legendre(2).points))
+    zeros = jax.tree.map(jnp.zeros_like, gj.gauss_legendre(3))
+    assert float(jnp.sum(zeros.weights)) == 0.0
+    jax.jit(lambda w: gj.QuadratureRule(jnp.array([0.2, 0.8]), w).weights * 2)(jnp.array([0.5, 1.0]))
