@@ -1,110 +1,70 @@
-"""[GBS, Table 5.1], cell by cell, classified from measured trajectories.
+"""[GBS, Table 5.1], cell by cell: the library's measured table (``reproduce.table51``)
+against the paper's cells, written out here.
 
-C: relative change at round-off (< 1e-12) throughout; D: strictly monotone decrease;
-NC: neither. The paper's NC ("nonconservation") is asserted as "not C"; the measured
-class is in the ids and in MEASURED_EMPTY_CELLS below.
+C: relative change at round-off (< 1e-12) throughout; D: strictly monotone decrease; NC:
+neither. The paper's NC ("nonconservation") is asserted as "no run conserves"; C* as "C with
+the modified midpoint rule, not with the plain midpoint rule". Each Hooke cell is measured
+at h = 1 (Figs. 4.1, 4.4) and h = 0.1 (Figs. 4.2, 4.5), 200 steps; each quartic cell
+(V = c (r^2 - 1)^2 / 2) at h = 0.01, 2000 steps (Figs. 4.6, 4.7).
 
-Measured for the cells the paper leaves empty (arbitrary potential, symmetric N_q > 1,
-energy), on the quartic scene V = c (r^2 - 1)^2 / 2, 2000 steps of h = 0.01:
+Measured for the boxes the paper leaves empty (arbitrary potential, symmetric N_q > 1, H):
 - cG(1): C with Gauss 2, Gauss 3 and Lobatto 3 (relative change ~1e-14): DH is cubic, these
   rules integrate it exactly and Theorem 3.1 applies; NC with the trapezoid rule (1e-1).
 - dG(1): NC with every multi-point rule (|dH/H| ~ 0.75, not monotone).
 Also measured: dG(1)'s |L| with N_q > 1 on the quartic scene (paper: NC) decays monotonically (D).
 """
 
-import functools
-
-import jax
-import jax.numpy as jnp
-import numpy as np
 import pytest
 
-import galerkin_jax as gj
-import helpers
+from galerkin_jax import reproduce
 
-H_HOOKE, Q_HOOKE, P_HOOKE, _ = helpers.oscillator()
-H_QUARTIC, _, Q_QUARTIC, P_QUARTIC = helpers.quartic()
-SCENES = {
-    "hooke h=1": (H_HOOKE, Q_HOOKE, P_HOOKE, 1.0, 200),  # Figs. 4.1, 4.4
-    "hooke h=0.1": (H_HOOKE, Q_HOOKE, P_HOOKE, 0.1, 2000),  # Figs. 4.2, 4.5
-    "quartic h=0.01": (H_QUARTIC, Q_QUARTIC, P_QUARTIC, 0.01, 2000),  # Figs. 4.6, 4.7
+# [GBS, Table 5.1] as printed; None: the box is empty.
+COLUMNS = ("Hooke: exact", "Hooke: N_q = 1", "Hooke: 1 < N_q", "arbitrary V: N_q = 1", "arbitrary V: 1 < N_q")
+PAPER = {
+    ("cG(1)", "H"): ("C", "C", "C", "C*", None),  # Props. 4.1, 4.2 (Cor. 4.1), 4.6
+    ("cG(1)", "L"): ("C", "C", "C", "C", "NC"),  # Cors. 4.3, 4.4, 4.7, 4.10
+    ("dG(1)", "H"): ("D", "C", "D", "C*", None),  # Props. 4.3, 4.4 (Cor. 4.2), Cor. 4.9
+    ("dG(1)", "L"): ("D", "C", "D", "C", "NC"),  # Cors. 4.5, 4.6, 4.8, 4.11
 }
-RULES = {
-    "exact": gj.gauss_legendre(3),
-    "midpoint": gj.midpoint(),
-    "gauss2": gj.gauss_legendre(2),
-    "lobatto3": gj.gauss_lobatto(3),
-    "trapezoid": gj.trapezoid(),
-}
+CELLS = [(m, q, column, paper) for (m, q), row in PAPER.items() for column, paper in zip(COLUMNS, row)]
+FILLED = [cell for cell in CELLS if cell[3] is not None]
 
 
-def classify(x):
-    rel = x / x[0] - 1
-    if np.abs(rel).max() < 1e-12:  # 10^4 eps: round-off over 2000 steps
-        return "C"
-    if np.all(np.diff(x) < 0):
-        return "D"
-    return "NC"
+@pytest.fixture(scope="module")
+def table():
+    return reproduce.table51()  # ~10 s: 5 compilations, then 44 runs of 200 or 2000 steps
 
 
-@functools.lru_cache(maxsize=None)
-def measured(family, scene, rule):
-    H, q0, p0, h, n = SCENES[scene]
-    method = gj.ModifiedMidpoint() if rule == "modified midpoint" else getattr(gj, family)(1, RULES[rule])
-    sol = gj.integrate(H, q0, p0, method=method, h=h, n_steps=n)
-    assert int(sol.status) == 0
-    energy = np.asarray(jax.vmap(H)(sol.q, sol.p))
-    angular = np.linalg.norm(np.asarray(jnp.cross(sol.q, sol.p)), axis=1)
-    return {"H": classify(energy), "L": classify(angular)}
+@pytest.mark.parametrize("method, quantity, column, paper", FILLED, ids=[f"{m}-{q}-{c}" for m, q, c, _ in FILLED])
+def test_every_filled_cell_is_the_papers(table, method, quantity, column, paper):
+    measured = table.cell(method, quantity, column).measured
+    assert measured, "a cell without runs"
+    if paper in ("C", "D"):
+        assert set(measured.values()) == {paper}, measured
+    elif paper == "NC":
+        assert "C" not in measured.values(), measured
+    else:  # C*: conserved only with the modified midpoint rule (Prop. 4.6, Notation 4.2)
+        assert measured == {"modified midpoint": "C", "midpoint": "NC"}
 
 
-HOOKE = [
-    # (family, expected H, expected L) per column
-    ("CG", "exact", "C", "C"),  # Props. 4.1, Cor. 4.3
-    ("CG", "midpoint", "C", "C"),  # Cor. 4.1, 4.7
-    ("CG", "gauss2", "C", "C"),  # Prop. 4.2, Cor. 4.4
-    ("CG", "lobatto3", "C", "C"),
-    ("CG", "trapezoid", "C", "C"),
-    ("DG", "exact", "D", "D"),  # Prop. 4.3, Cor. 4.5
-    ("DG", "midpoint", "C", "C"),  # Cor. 4.2, 4.8
-    ("DG", "gauss2", "D", "D"),  # Prop. 4.4, Cor. 4.6
-    ("DG", "lobatto3", "D", "D"),
-    ("DG", "trapezoid", "D", "D"),
-]
-ARBITRARY = [
-    ("CG", "modified midpoint", "H", "C"),  # C*: Prop. 4.6
-    ("CG", "midpoint", "H", "NC"),  # C* means: not with the plain midpoint rule
-    ("CG", "midpoint", "L", "C"),  # Prop. 4.7, Cor. 4.10
-    ("CG", "gauss2", "L", "NC"),
-    ("CG", "lobatto3", "L", "NC"),
-    ("DG", "modified midpoint", "H", "C"),  # C*: Cor. 4.9 (dG(1) + one point at 1/2 = cG(1), Prop. 3.2)
-    ("DG", "midpoint", "H", "NC"),
-    ("DG", "midpoint", "L", "C"),  # Prop. 4.8, Cor. 4.11
-    ("DG", "gauss2", "L", "NC"),
-    ("DG", "lobatto3", "L", "NC"),
-]
+def test_the_empty_cells_as_measured(table):
+    """What the paper leaves open, pinned down so that a change is noticed (module docstring)."""
+    cg = table.cell("cG(1)", "H", "arbitrary V: 1 < N_q").measured
+    assert cg == {"gauss2": "C", "gauss3": "C", "lobatto3": "C", "trapezoid": "NC"}  # exact quadrature of a cubic DH
+    assert set(table.cell("dG(1)", "H", "arbitrary V: 1 < N_q").measured.values()) == {"NC"}
+    assert set(table.cell("dG(1)", "L", "arbitrary V: 1 < N_q").measured.values()) == {"D"}  # paper: NC
 
 
-@pytest.mark.parametrize("scene", ["hooke h=1", "hooke h=0.1"])
-@pytest.mark.parametrize("family, rule, energy, angular", HOOKE, ids=[f"{f}(1)-{r}" for f, r, *_ in HOOKE])
-def test_hooke_columns(scene, family, rule, energy, angular):
-    cell = measured(family, scene, rule)
-    assert cell == {"H": energy, "L": angular}
-
-
-@pytest.mark.parametrize("family, rule, quantity, expected", ARBITRARY, ids=[f"{f}(1)-{r}-{q}" for f, r, q, _ in ARBITRARY])
-def test_arbitrary_potential_columns(family, rule, quantity, expected):
-    got = measured(family, "quartic h=0.01", rule)[quantity]
-    if expected == "NC":
-        assert got != "C"
-    else:
-        assert got == expected
-
-
-def test_the_empty_cells_as_measured():
-    """What the paper leaves open, pinned down so that a change is noticed (see module docstring)."""
-    for rule in ("gauss2", "lobatto3"):
-        assert measured("CG", "quartic h=0.01", rule)["H"] == "C"  # exact quadrature of a cubic DH
-        assert measured("DG", "quartic h=0.01", rule)["H"] == "NC"
-        assert measured("DG", "quartic h=0.01", rule)["L"] == "D"
-    assert measured("CG", "quartic h=0.01", "trapezoid")["H"] == "NC"
+def test_the_library_copy_of_the_paper_and_the_rendering(table):
+    """The table knows which boxes the paper fills, and the markdown marks the empty ones."""
+    assert tuple(reproduce.COLUMNS) == COLUMNS
+    assert reproduce.PAPER_TABLE51 == PAPER
+    assert [(c.method, c.quantity, c.column, c.paper) for c in table.cells] == CELLS
+    markdown = table.markdown()
+    for method, quantity in PAPER:
+        assert f"| {method} {quantity} |" in markdown
+    assert markdown.count("*empty in the paper*") == 2
+    assert "**paper" not in markdown  # no disagreement flagged
+    assert table.cell("dG(1)", "L", "arbitrary V: 1 < N_q").render() == "NC (measured D)"
+    assert table.cell("cG(1)", "H", "arbitrary V: N_q = 1").render() == "C*"
+    assert "(empty): C (gauss2, gauss3, lobatto3), NC (trapezoid)" in table.text()
