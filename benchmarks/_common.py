@@ -40,3 +40,25 @@ def write(name, results):
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps({"machine": machine(), **results}, indent=2))
     print(f"wrote {path}")
+
+
+def compiled(fn, *args):
+    """(compile_s, call): ``fn`` jitted and compiled ahead of time for ``args``."""
+    t0 = time.perf_counter()
+    call = jax.jit(fn).lower(*args).compile()
+    return time.perf_counter() - t0, call
+
+
+def best_time(call, *args, repeat=3, min_s=0.1, budget_s=3.0):
+    """Best wall time of ``call(*args)``, already warmed up: ``repeat`` runs, more until they
+    total ``min_s`` (short runs are noisy), fewer once ``budget_s`` has passed (long runs are
+    not); at least one run, at most 1000."""
+    times, start = [], time.perf_counter()
+    while len(times) < 1000:
+        t0 = time.perf_counter()
+        jax.block_until_ready(call(*args))
+        times.append(time.perf_counter() - t0)
+        elapsed = time.perf_counter() - start
+        if elapsed > budget_s or (len(times) >= repeat and elapsed > min_s):
+            break
+    return min(times)
