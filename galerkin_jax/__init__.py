@@ -14,6 +14,7 @@ from ._integrate import (
 )
 from ._midpoint import DiscreteGradient as DiscreteGradient, ModifiedMidpoint as ModifiedMidpoint
 from ._solve import Status as Status, status_message as status_message
+from ._accuracy import suggest_step_size as suggest_step_size
 from ._checks import Float32Warning as Float32Warning
 from ._configs import Configs as Configs, grid as grid, pad_rule as pad_rule, stack_methods as stack_methods
 from ._sweep import SweepResult as SweepResult, sweep as sweep
@@ -59,6 +60,7 @@ __all__ = [
     "rule_from_params",
     "stack_methods",
     "status_message",
+    "suggest_step_size",
     "step",
     "sweep",
     "trapezoid",
