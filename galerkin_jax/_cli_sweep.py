@@ -22,7 +22,7 @@ def groups(method_specs):
     return list(grouped.values())
 
 
-def sweep_call(problem, group, hs, states, scales, n_steps, dtype):
+def sweep_call(problem, group, hs, states, scales, n_steps, dtype, progress=False):
     """A function of no arguments: one ``gj.sweep`` over ``group`` x ``hs`` x ``states``.
 
     The reference for the final error is the scene's exact solution at ``n_steps h`` for the
@@ -43,7 +43,8 @@ def sweep_call(problem, group, hs, states, scales, n_steps, dtype):
         exact = [problem.exact(n_steps * h) if scale == 1.0 else (nan, nan)
                  for _, h, scale in itertools.product(group, hs, scales)]
         reference = tuple(np.stack([np.asarray(x[i], dtype=float) for x in exact]).astype(dtype) for i in (0, 1))
-    return lambda: gj.sweep(fn, configs, n_steps=n_steps, invariants=invariants, reference=reference)
+    return lambda: gj.sweep(fn, configs, n_steps=n_steps, invariants=invariants, reference=reference,
+                            progress=progress)
 
 
 def rows(group, hs, scales, result, n_steps):

@@ -75,7 +75,7 @@ def predictor(method, q, p, previous, misses, count):
 
 
 def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, checkpoint=False, dense=False,
-          observe=None, acc0=None, progress=False):
+          observe=None, acc0=None, progress=False, estimate=True):
     """Chain ``n_blocks * block_size`` elements of one run.
 
     Args:
@@ -83,6 +83,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, c
             starting from ``acc0`` (sweep diagnostics).
         dense: also return, per element, its start state and polynomial coefficients.
         progress: drive a progress bar from inside the loop (``_progress``).
+        estimate: compute each element's local error estimate (else it is NaN).
     Returns:
         ``(final, saved, polynomials)``: ``final`` holds ``q, p, status, total, most, trips,
         estimate, acc``; ``saved = (qs, ps)`` of shape ``(n_blocks, d)``, the state at the
@@ -113,7 +114,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, c
         p1, cp = compensated_add(p, dp, c["cp"])
         # an estimate, not a function to differentiate (and no 0 * inf from a failed run's)
         frozen = jax.lax.stop_gradient((q, p, Z, h, args))
-        estimate = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4]))
+        local = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4])) if estimate else jnp.nan
         finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
         status = jnp.where((status == Status.SUCCESS) & ~finite, Status.NONFINITE, status)
         status = jnp.where(failed, c["status"], status).astype(jnp.int32)  # the first failure is kept
@@ -126,7 +127,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, c
         new = dict(
             c, **now, cq=cq, cp=cp, misses=misses, count=jnp.minimum(c["count"] + 1, 3), matrix=matrix,
             status=status, total=c["total"] + iterations, most=jnp.maximum(c["most"], iterations),
-            trips=c["trips"] + trips, estimate=jnp.maximum(c["estimate"], estimate), acc=acc, done=c["done"] + 1,
+            trips=c["trips"] + trips, estimate=jnp.maximum(c["estimate"], local), acc=acc, done=c["done"] + 1,
         )
         if progress:
             _progress.report(new["done"], total, _progress.stride(total))

@@ -86,8 +86,8 @@ def _block_size(n_steps, save_every, checkpoint):
     return min(divisors, key=lambda b: abs(b - n_steps**0.5))
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5, 6))
-def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, progress, configs, reference):
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5, 6, 7))
+def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, progress, estimate, configs, reference):
     invariants = dict(invariants)
     block = _block_size(n_steps, save_every, checkpoint)
 
@@ -95,7 +95,7 @@ def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, progres
         acc0, observe = _diagnostics(H, invariants, q0, p0, args)
         final, saved, _ = march(method, H, q0, p0, h, args, n_blocks=n_steps // block, block_size=block,
                                 max_iterations=max_iterations, checkpoint=checkpoint, observe=observe, acc0=acc0,
-                                progress=progress)
+                                progress=progress, estimate=estimate)
         return final, (solution(final, saved, None, q0, p0, h, block) if save_every else None)
 
     c = configs
@@ -138,6 +138,7 @@ def sweep(
     devices=None,
     checkpoint=False,
     progress=False,
+    error_estimate=True,
 ):
     """Run every configuration of ``configs`` for ``n_steps`` elements in one compiled call.
 
@@ -156,6 +157,7 @@ def sweep(
             with one), so that a gradient stores one carry per block instead of every
             element's residuals. Static.
         progress: show a progress bar over the elements (all members advance together). Static.
+        error_estimate: compute ``SweepResult.error_estimate`` (else NaN, and cheaper). Static.
     Returns:
         ``SweepResult`` with a leading axis B on every field.
     """
@@ -167,7 +169,7 @@ def sweep(
     if devices is not None:
         inputs = _shard(inputs, devices)
     result = _run(H, tuple(invariants.items()), n_steps, save_every, max_newton_iterations, checkpoint, bool(progress),
-                  *inputs)
+                  bool(error_estimate), *inputs)
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
     return result

@@ -120,6 +120,8 @@ def build_parser():
     scene.add_argument("--steps", type=_positive(int), metavar="N",
                        help="number of time elements (default: the scene's)")
     scene.add_argument("--float32", action="store_true", help="compute in float32 (default float64)")
+    scene.add_argument("--progress", action=argparse.BooleanOptionalAction, default=sys.stderr.isatty(),
+                       help="a progress bar while the elements run (default: on when stderr is a terminal)")
     common = dict(parents=[scene], formatter_class=raw, epilog=SCENES_AND_METHODS)
     out = dict(metavar="FOLDER", default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
 
@@ -212,7 +214,7 @@ def run_command(options):
     integrate = functools.partial(
         gj.integrate, problem.L if spec.kind == "lvi" else problem.H, problem.q0.astype(_dtype()),
         problem.p0.astype(_dtype()), method=specs.build(spec), h=h, n_steps=n_steps, args=problem.args,
-        save_every=options.save_every, dense=_dense(spec, n_steps, problem.q0.shape[0]))
+        save_every=options.save_every, dense=_dense(spec, n_steps, problem.q0.shape[0]), progress=options.progress)
     solution, compile_s, run_s = timed(integrate)
     energy, invariants = _observe(problem, solution)
     files = _write_run(problem, spec, solution, energy, invariants, h, n_steps, options)
@@ -302,12 +304,11 @@ def _accuracy_lines(problem, solution):
         q, p = problem.exact(t_end)
         error = max(np.max(np.abs(np.asarray(solution.q[-1]) - q)), np.max(np.abs(np.asarray(solution.p[-1]) - p)))
         lines.append(("accuracy", f"error against the exact solution at t = {t_end:g}: {error:.2e} (max-norm)"))
-    if hasattr(solution, "error_estimate"):
-        estimate = float(solution.error_estimate)
-        size = np.max(np.abs(np.concatenate([np.asarray(solution.q), np.asarray(solution.p)], axis=1)))
-        verdict = "; the steps are too large to mean much" if estimate >= 0.1 * size else ""
-        lines.append(("estimate", f"largest estimated local error of one element: {estimate:.2e} (max-norm; "
-                                  f"{estimate / size:.1e} of the largest |q_i|, |p_i|{verdict})"))
+    estimate = float(solution.error_estimate)
+    size = np.max(np.abs(np.concatenate([np.asarray(solution.q), np.asarray(solution.p)], axis=1)))
+    verdict = "; the steps are too large to mean much" if estimate >= 0.1 * size else ""
+    lines.append(("estimate", f"largest estimated local error of one element: {estimate:.2e} (max-norm; "
+                              f"{estimate / size:.1e} of the largest |q_i|, |p_i|{verdict})"))
     return lines
 
 
@@ -322,7 +323,8 @@ def sweep_command(options):
     rows, times = [], np.zeros(2)
     groups = sweeps.groups(method_specs)
     for group in groups:
-        result, *seconds = timed(sweeps.sweep_call(problem, group, hs, states, options.q0_scale, n_steps, _dtype()))
+        result, *seconds = timed(sweeps.sweep_call(problem, group, hs, states, options.q0_scale, n_steps, _dtype(),
+                                                   options.progress))
         times += seconds
         rows += sweeps.rows(group, hs, options.q0_scale, result, n_steps)
     rows.sort(key=lambda row: method_specs.index(row["spec"]))

@@ -67,6 +67,9 @@ def test_sweep_and_integrate_give_the_same_estimate_and_lagrangian_vi_gives_nan(
     for i, h in enumerate([0.05, 0.1]):
         sol = gj.integrate(H, Q0, P0, method=method, h=h, n_steps=40)
         assert float(result.error_estimate[i]) == pytest.approx(float(sol.error_estimate), rel=1e-12)
+    skipped = gj.integrate(H, Q0, P0, method=method, h=0.1, n_steps=40, error_estimate=False)
+    assert np.isnan(float(skipped.error_estimate))
+    np.testing.assert_array_equal(skipped.q, sol.q)  # the estimate never feeds back into the run
     L = lambda q, v: 0.5 * (v @ v) + 1.0 / jnp.sqrt(q @ q)
     assert np.isnan(float(gj.integrate(L, Q0, P0, method=gj.LagrangianVI(1, gj.midpoint()), h=0.05, n_steps=4).error_estimate))
 
