@@ -136,22 +136,37 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
     def refreshed(Z, inverse, asked):
         return _select(asked, jnp.linalg.inv(block_jacobians(residual, Z)), inverse)
 
-    def cond(c):
-        return (c["trips"] < max_iterations) & jnp.any(c["flags"][_GROUPS["flags"].index("active")])
+    flag = lambda c, name: c["flags"][_GROUPS["flags"].index(name)]
+
+    def rounds(c):
+        return (c["trips"] < max_iterations) & jnp.any(flag(c, "active"))
+
+    def iterating(c):
+        return (c["trips"] < max_iterations) & jnp.any(flag(c, "active") & ~flag(c, "asked"))
+
+    def round(c):
+        """Fresh matrices for the members that asked (a conditional costs as much as an
+        iteration, so it runs once per round, not per iteration), then iterate until every
+        active member has converged, failed or asked again."""
+        c = _unpack(c)
+        asked, inverse = c["asked"], c["inverse"]
+        if dense:
+            inverse = jax.lax.cond(jnp.any(asked), refreshed, lambda Z, inverse, _: inverse, c["Z"], inverse, asked)
+        c = dict(c, inverse=inverse, newton=c["newton"] | asked, fresh=c["fresh"] | asked,
+                 damping=jnp.where(asked, 1.0, c["damping"]), asked=jnp.zeros_like(asked))
+        return jax.lax.while_loop(iterating, body, _pack(c))
 
     def body(c):
         c = _unpack(c)
-        Z, r, asked = c["Z"], c["r"], c["asked"]
-        inverse = c["inverse"]
-        if dense:
-            inverse = jax.lax.cond(jnp.any(asked), refreshed, lambda Z, inverse, _: inverse, Z, inverse, asked)
-        newton, fresh = c["newton"] | asked, c["fresh"] | asked
+        Z, r, newton, fresh, inverse, damping = c["Z"], c["r"], c["newton"], c["fresh"], c["inverse"], c["damping"]
+        moving = c["active"] & ~c["asked"]  # members that asked wait for the next round
         r_flat = r.reshape(B, -1)
         dz = r_flat
-        if dense:  # the matrix-vector product only in iterations where some member uses Newton
+        if dense and n <= NEWTON_FIRST:  # fused, no conditional: cheaper than skipping it
+            dz = _select(newton, jnp.sum(inverse * r_flat[:, None, :], axis=-1), r_flat)
+        elif dense:  # only in iterations where some member uses Newton
             dz = jax.lax.cond(jnp.any(newton), lambda: _select(newton, jnp.einsum("bij,bj->bi", inverse, r_flat), r_flat),
                               lambda: r_flat)
-        damping = jnp.where(asked, 1.0, c["damping"])
         dz = damping[:, None] * dz
         Z_new = Z - dz.reshape(Z.shape)
         r_new = residual(Z_new)
@@ -173,8 +188,8 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
         # is refreshed instead); at the round-off of the state whatever the K.
         stale = ~(newton & fresh)  # a fixed-point K, or a Newton K from an earlier iterate
         stalled = ((~stale & (rate >= 1.0) & (step <= floor)) | (noisy & (step >= c["last"]))) & (c["r_size"] <= floor)
-        done = c["active"] & (accept_here | stalled)
-        going = c["active"] & ~done
+        done = moving & (accept_here | stalled)
+        going = moving & ~done
         rejected = going & stale & (bad | (rate > 1.0))
         # a Newton step with a fresh K that does not lower the residual is halved (far from the
         # root, e.g. at h omega ~ 1, Newton's full steps can wander)
@@ -182,13 +197,13 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
         failed = going & ~stale & bad & ~backtrack
         take = (done & accept_here) | (going & ~rejected & ~failed & ~backtrack)
         Z, r = _select(take, Z_new, Z), _select(take, r_new, r)
-        iterations = c["iterations"] + c["active"]
+        iterations = c["iterations"] + moving
         status = jnp.where(failed, Status.NONFINITE, c["status"])
-        active = going & ~failed
+        active = (c["active"] & ~moving) | (going & ~failed)
         slow = theta > jnp.where(newton, THETA_NEWTON if n <= NEWTON_FIRST else THETA_NEWTON_LARGE, THETA_FIXED_POINT)
         patience = iterations >= jnp.where(newton, PATIENCE, PATIENCE_FIXED_POINT)
         unsure = small & ~bad & stale  # a small update but a large residual: K is off
-        asked = active & ~backtrack & (rejected | ((slow | patience) & ~noisy) | unsure) & dense
+        asked = c["asked"] | (going & ~failed & ~backtrack & (rejected | ((slow | patience) & ~noisy) | unsure) & dense)
         damping = jnp.where(backtrack, 0.5 * damping, jnp.where(take, jnp.minimum(1.0, 2.0 * damping), damping))
         restart = asked | backtrack
         return _pack(dict(
@@ -207,7 +222,7 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
         damping=jnp.ones(B, dtype), step=nan, rate=nan, last=nan, r_size=r0_size, active=ok & ~skip, iterations=jnp.zeros(B, jnp.int32),
         status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32),
     )
-    c = _unpack(jax.lax.while_loop(cond, body, _pack(init)))
+    c = _unpack(jax.lax.while_loop(rounds, round, _pack(init)))
     status = jnp.where(c["active"], Status.NEWTON_MAX_ITERATIONS, c["status"]).astype(jnp.int32)
     # a failed member's unknowns become its constant predictor: a finite point for the
     # linearisation, so no NaN reaches the others' gradients (its outputs are masked)

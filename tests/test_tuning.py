@@ -1,7 +1,4 @@
-"""Tuning quadrature rules with optax through the implicit solves; the notebook runs too."""
-
-import os
-import pathlib
+"""Tuning quadrature rules with optax through the implicit solves (the notebook runs in test_notebooks.py)."""
 
 import jax
 import jax.numpy as jnp
@@ -73,19 +70,3 @@ def test_rule_parametrisation_round_trips_and_rejects_boundary_points():
     np.testing.assert_allclose(back.weights, rule.weights, rtol=1e-14)
     with pytest.raises(ValueError, match="inside|\\(0, 1\\)"):
         gj.params_from_rule(gj.trapezoid())
-
-
-NOTEBOOK = pathlib.Path(__file__).parents[1] / "notebooks" / "tune_quadrature.ipynb"
-
-
-def test_tune_quadrature_notebook_runs():
-    nbformat = pytest.importorskip("nbformat")
-    nbclient = pytest.importorskip("nbclient")
-    notebook = nbformat.read(NOTEBOOK, as_version=4)
-    os.environ["GJ_NOTEBOOK_ITERATIONS"] = "10"  # small size for the test suite
-    try:
-        nbclient.NotebookClient(notebook, timeout=300, kernel_name="python3").execute()
-    finally:
-        del os.environ["GJ_NOTEBOOK_ITERATIONS"]
-    last = "".join(o.get("text", "") for o in notebook.cells[-1].get("outputs", []))
-    assert "loss reduced by" in last
