@@ -16,12 +16,15 @@ from numpy.polynomial import legendre as npleg
 
 def combine(A, X):
     """``A @ X`` for a small coefficient array A (shape ``(m,)`` or ``(l, m)``) and X of shape
-    ``(m, ...)``, as a broadcast multiply-and-sum: XLA fuses it with its neighbours, where a
-    matrix product of this size would be a kernel launch of its own (several times the cost)."""
+    ``(m, ...)``, unrolled over m as ``sum_j A[..., j] X[j]``: elementwise products that XLA
+    fuses with their neighbours, alone and under vmap, where a matrix product of this size is
+    a kernel launch of its own and a broadcast-and-reduce is slow once batched."""
     A = jnp.asarray(A, X.dtype)
-    if A.ndim == 1:
-        return jnp.sum(A.reshape(A.shape + (1,) * (X.ndim - 1)) * X, axis=0)
-    return jnp.sum(A.reshape(A.shape + (1,) * (X.ndim - 1)) * X[None], axis=1)
+    a_shape, x_shape = A.shape[:-1] + (1,) * (X.ndim - 1), (1,) * (A.ndim - 1) + X.shape[1:]
+    total = A[..., 0].reshape(a_shape) * X[0].reshape(x_shape)
+    for j in range(1, A.shape[-1]):
+        total = total + A[..., j].reshape(a_shape) * X[j].reshape(x_shape)
+    return total
 
 
 def legendre_values(alpha, n):

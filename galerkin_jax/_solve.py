@@ -86,6 +86,15 @@ class Matrix:
     inverse: object
 
 
+def _matvec(K, r):
+    """K @ r per member, ``(B, n, n) x (B, n)``, unrolled over the columns: one fused loop,
+    where a batched dot or a broadcast-and-reduce of this size is several times slower."""
+    total = K[:, :, 0] * r[:, :1]
+    for j in range(1, r.shape[1]):
+        total = total + K[:, :, j] * r[:, j : j + 1]
+    return total
+
+
 def _size(x):
     return jnp.max(jnp.abs(x.reshape(x.shape[0], -1)), axis=1)
 
@@ -133,10 +142,34 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
     doubtful = ~(_size(r_pred) < 0.1 * _size(Z_pred)) & ~skip
     Z0, r0 = jax.lax.cond(jnp.any(doubtful), rival, lambda Z, r: (Z, r), Z_pred, r_pred)
 
-    def refreshed(Z, inverse, asked):
-        return _select(asked, jnp.linalg.inv(block_jacobians(residual, Z)), inverse)
+    capacity = B if B <= 8 else max(8, B // 8)  # members whose Jacobians one refresh computes
 
-    flag = lambda c, name: c["flags"][_GROUPS["flags"].index(name)]
+    def refreshed(Z, inverse, asked):
+        """Inverse Jacobians for up to ``capacity`` of the members that asked, gathered so
+        that the work follows the askers, not the batch; returns ``(inverse, served)``."""
+        if capacity == B:
+            return _select(asked, jnp.linalg.inv(block_jacobians(residual, Z)), inverse), asked
+        index = jnp.nonzero(asked, size=capacity, fill_value=B)[0]
+        take = lambda x: x[jnp.minimum(index, B - 1)]
+        sub = jax.tree.map(take, params)
+        J = block_jacobians(lambda Z: jax.vmap(fn)(Z, sub), take(Z))
+        inverse = inverse.at[index].set(jnp.linalg.inv(J), mode="drop")
+        return inverse, jnp.zeros(B, bool).at[index].set(True, mode="drop")
+
+    def refresh(c):
+        """Fresh matrices for the members that asked (those beyond ``capacity`` keep asking)."""
+        asked, inverse = c["asked"], c["inverse"]
+        if not dense:
+            return c
+        inverse, served = jax.lax.cond(jnp.any(asked), refreshed, lambda Z, inverse, _: (inverse, jnp.zeros_like(_)),
+                                       c["Z"], inverse, asked)
+        return dict(c, inverse=inverse, newton=c["newton"] | served, fresh=c["fresh"] | served,
+                    damping=jnp.where(served, 1.0, c["damping"]), asked=asked & ~served)
+
+    # one run: the scalars packed (fewer kernel launches); a batch: apart (a packed group is a
+    # concatenate, whose per-element indexing XLA does not vectorise)
+    pack, unpack = (_pack, _unpack) if B == 1 else (lambda c: c, lambda c: c)
+    flag = lambda c, name: c["flags"][_GROUPS["flags"].index(name)] if B == 1 else c[name]
 
     def rounds(c):
         return (c["trips"] < max_iterations) & jnp.any(flag(c, "active"))
@@ -145,34 +178,35 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
         return (c["trips"] < max_iterations) & jnp.any(flag(c, "active") & ~flag(c, "asked"))
 
     def round(c):
-        """Fresh matrices for the members that asked (a conditional costs as much as an
-        iteration, so it runs once per round, not per iteration), then iterate until every
-        active member has converged, failed or asked again."""
-        c = _unpack(c)
-        asked, inverse = c["asked"], c["inverse"]
-        if dense:
-            inverse = jax.lax.cond(jnp.any(asked), refreshed, lambda Z, inverse, _: inverse, c["Z"], inverse, asked)
-        c = dict(c, inverse=inverse, newton=c["newton"] | asked, fresh=c["fresh"] | asked,
-                 damping=jnp.where(asked, 1.0, c["damping"]), asked=jnp.zeros_like(asked))
-        return jax.lax.while_loop(iterating, body, _pack(c))
+        """One run (B = 1): refresh once per round, then iterate until the member converges,
+        fails or asks again; a conditional costs as much as an iteration of a small system."""
+        return jax.lax.while_loop(iterating, body, pack(refresh(unpack(c))))
+
+    def batch_iteration(c):
+        """A batch: the askers are served at once, every iteration (the conditional is cheap
+        against the batch's work, and nobody waits for a round to end)."""
+        return body(pack(refresh(unpack(c))))
 
     def body(c):
-        c = _unpack(c)
+        c = unpack(c)
         Z, r, newton, fresh, inverse, damping = c["Z"], c["r"], c["newton"], c["fresh"], c["inverse"], c["damping"]
-        moving = c["active"] & ~c["asked"]  # members that asked wait for the next round
+        moving = c["active"] & ~c["asked"]  # members that asked wait for their matrix
         r_flat = r.reshape(B, -1)
         dz = r_flat
         if dense and n <= NEWTON_FIRST:  # fused, no conditional: cheaper than skipping it
-            dz = _select(newton, jnp.sum(inverse * r_flat[:, None, :], axis=-1), r_flat)
+            dz = _select(newton, _matvec(inverse, r_flat), r_flat)
         elif dense:  # only in iterations where some member uses Newton
             dz = jax.lax.cond(jnp.any(newton), lambda: _select(newton, jnp.einsum("bij,bj->bi", inverse, r_flat), r_flat),
                               lambda: r_flat)
         dz = damping[:, None] * dz
         Z_new = Z - dz.reshape(Z.shape)
         r_new = residual(Z_new)
-        # one reduction for the three sizes; max propagates NaN, so a non-finite update or
-        # residual shows in ``step`` or ``r_size``
-        step, z_size, r_size = jnp.max(jnp.abs(jnp.stack([dz, Z_new.reshape(B, -1), r_new.reshape(B, -1)])), axis=-1)
+        # max propagates NaN, so a non-finite update or residual shows in ``step`` or
+        # ``r_size``; one run takes the three sizes in one reduction (one launch)
+        if B == 1:
+            step, z_size, r_size = jnp.max(jnp.abs(jnp.stack([dz, Z_new.reshape(B, -1), r_new.reshape(B, -1)])), axis=-1)
+        else:
+            step, z_size, r_size = _size(dz), _size(Z_new), _size(r_new)
         bad = ~jnp.isfinite(step + r_size)
         rate = step / c["step"]  # NaN until a member has two updates with one K
         theta = jnp.fmax(rate, c["rate"])
@@ -196,6 +230,9 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
         backtrack = going & ~stale & (bad | (r_size >= c["r_size"])) & ~noisy & (damping > 1.0 / 64)
         failed = going & ~stale & bad & ~backtrack
         take = (done & accept_here) | (going & ~rejected & ~failed & ~backtrack)
+        # computed once: without the barrier XLA repeats the decisions above in every fusion
+        # that reads them (the selects below, the packed carries), which costs more than the rest
+        take, going, failed, backtrack, rejected = jax.lax.optimization_barrier((take, going, failed, backtrack, rejected))
         Z, r = _select(take, Z_new, Z), _select(take, r_new, r)
         iterations = c["iterations"] + moving
         status = jnp.where(failed, Status.NONFINITE, c["status"])
@@ -206,7 +243,7 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
         asked = c["asked"] | (going & ~failed & ~backtrack & (rejected | ((slow | patience) & ~noisy) | unsure) & dense)
         damping = jnp.where(backtrack, 0.5 * damping, jnp.where(take, jnp.minimum(1.0, 2.0 * damping), damping))
         restart = asked | backtrack
-        return _pack(dict(
+        return pack(dict(
             trips=c["trips"] + 1, Z=Z, r=r, newton=newton, fresh=fresh, inverse=inverse, asked=asked,
             damping=damping, step=jnp.where(restart, jnp.nan, step), rate=jnp.where(restart, jnp.nan, rate),
             last=jnp.where(take, step, c["last"]), r_size=jnp.where(take, r_size, c["r_size"]), active=active,
@@ -222,7 +259,7 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
         damping=jnp.ones(B, dtype), step=nan, rate=nan, last=nan, r_size=r0_size, active=ok & ~skip, iterations=jnp.zeros(B, jnp.int32),
         status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32),
     )
-    c = _unpack(jax.lax.while_loop(rounds, round, _pack(init)))
+    c = unpack(jax.lax.while_loop(rounds, round if B == 1 else batch_iteration, pack(init)))
     status = jnp.where(c["active"], Status.NEWTON_MAX_ITERATIONS, c["status"]).astype(jnp.int32)
     # a failed member's unknowns become its constant predictor: a finite point for the
     # linearisation, so no NaN reaches the others' gradients (its outputs are masked)
@@ -231,8 +268,9 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
     return Z, matrix, c["iterations"], status, jnp.broadcast_to(c["trips"], (B,))
 
 
-# The per-member scalars of the loop travel as three stacked arrays: XLA then computes each
-# group in one fused kernel, not one kernel per scalar (the loop's cost is mostly launches).
+# For one run the per-member scalars of the loop travel as three stacked arrays: XLA then
+# computes each group in one fused kernel, not one kernel per scalar (the loop's cost is
+# mostly launches).
 _GROUPS = {"floats": ("damping", "step", "rate", "last", "r_size"), "flags": ("newton", "fresh", "asked", "active"),
            "counts": ("iterations", "status")}
 
