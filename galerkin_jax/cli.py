@@ -351,7 +351,7 @@ def reproduce_command(options):
     from . import reproduce
 
     result = reproduce.reproduce(options.out, quick=options.quick)
-    print(f"Table 5.1 of [GBS]: is H (and |L|) conserved (C), decreasing (D) or neither (NC)?\n\n{result['table51']}")
+    print(f"Table 5.1 of [GBS]: is H (and |L|) conserved (C), decreasing (D) or neither (NC)?\n\n{result['table51'].text()}")
     paths = sorted(result["files"].values())
     print("files    " + "\n         ".join(f"{p} ({output.size_text(p)})" for p in paths))
     return 0

@@ -163,6 +163,8 @@ class Table51:
         widths = [max(len(r[j]) for r in rows) for j in range(len(rows[0]))]
         return "\n".join("  ".join(x.ljust(w) for x, w in zip(r, widths)).rstrip() for r in rows) + "\n"
 
+    __str__ = text
+
 
 def table_runs():
     """Every run of Table 5.1 (also those of Figs. 4.1, 4.2, 4.4-4.7), saving every state.

@@ -43,11 +43,12 @@ def local_errors(method, h):
 @pytest.mark.parametrize("name", METHODS)
 def test_the_estimate_tracks_the_true_local_error_at_the_methods_order(name):
     """The truncated Alekseev-Groebner formula gives the leading term of the local error, so
-    estimate / true -> 1 (measured 0.95 to 1.12 over these points and h; 'never under by more
-    than 2x' is the contract), and the estimate falls at the local order."""
+    estimate / true -> 1 (measured 0.983 to 1.024 over these points and h; 'never under by
+    more than 2x' is the contract), and the estimate falls at the local order (measured 2.98,
+    5.13, 3.85, 4.97, 2.93, 1.86)."""
     true, estimate = zip(*(local_errors(METHODS[name], h) for h in STEPS))
     ratios = np.array(estimate) / np.array(true)
-    assert ratios.min() > 0.8 and ratios.max() < 1.3
+    assert ratios.min() > 0.9 and ratios.max() < 1.1
     order = helpers.fitted_order(STEPS, [e.max() for e in estimate], floor=1e-13)
     if ORDERS[name] is not None:
         assert order == pytest.approx(ORDERS[name], abs=0.3)  # Kepler e = 0.6 is not yet asymptotic at h = 0.1

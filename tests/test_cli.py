@@ -77,7 +77,7 @@ def test_help_names_the_tool_and_a_bad_option_exits_2(tmp_path):
 
 
 class _Table:
-    def __str__(self):
+    def text(self):  # the interface of reproduce.Table51 that the command uses
         return "         Hooke: exact\ncG(1) H  C\ndG(1) L  D\n"
 
 
