@@ -99,6 +99,19 @@ def work_precision(ns):
     return table
 
 
+def progress_cost(n_steps=100_000, h=0.01):
+    """Run time of a long run with and without the progress bar (50 host callbacks)."""
+    method = gj.CG(2, gj.gauss_legendre(2))
+    rows = {}
+    for progress in (False, True):
+        fn = lambda q, p, h: gj.integrate(kepler, q, p, method=method, h=h, n_steps=n_steps, save_every=n_steps,
+                                          progress=progress).q[-1]
+        c, r = timed(fn, Q0, P0, h)
+        rows[f"progress={progress}"] = {"compile_s": c, "run_s": r, "us_per_step": 1e6 * r / n_steps}
+    rows["slowdown"] = rows["progress=True"]["run_s"] / rows["progress=False"]["run_s"] - 1
+    return rows
+
+
 def plot(table, path):
     import matplotlib
 
@@ -125,9 +138,13 @@ def main():
     print(f"{'method':<30}{'compile s':>10}{'us/step':>10}{'ratio':>8}")
     for name, row in rows.items():
         print(f"{name:<30}{row['compile_s']:>10.2f}{row['us_per_step']:>10.2f}{row['ratio_to_baseline']:>8.2f}")
+    progress = progress_cost()
+    print(f"progress bar on 1e5 steps: {100 * progress['slowdown']:+.1f} % run time "
+          f"({progress['progress=False']['run_s']:.3f} s without)")
     table = work_precision([64, 128, 256, 512, 1024, 2048])
     plot(table, RESULTS / "step_work_precision.png")
-    write("step", {"n_steps": options.steps, "h": options.h, "per_step": rows, "work_precision": table})
+    write("step", {"n_steps": options.steps, "h": options.h, "per_step": rows, "progress": progress,
+                   "work_precision": table})
 
 
 if __name__ == "__main__":
