@@ -186,23 +186,14 @@ def tag(spec):
 
 
 @dataclasses.dataclass(frozen=True)
-class Problem:
-    """A scene as the command line tool runs it (``scenes.Scene`` plus what a file may add).
+class Problem(scenes.Scene):
+    """A scene as the command line tool runs it: ``scenes.Scene`` plus what a file may add.
 
     Attributes:
         args: passed to ``H(q, p, args)`` when not None.
         L: ``L(q, qdot)`` (or ``L(q, qdot, args)``) for LagrangianVI, else None.
     """
 
-    name: str
-    description: str
-    H: Callable
-    q0: np.ndarray
-    p0: np.ndarray
-    h: float
-    n_steps: int
-    invariants: dict
-    exact: Optional[Callable] = None
     args: Any = None
     L: Optional[Callable] = None
 

@@ -52,7 +52,7 @@ class ModifiedMidpoint(_Increment):
 
     def residual(self, H, q0, p0, Z, h):
         dq, dp = _split(Z)
-        q1, p1 = q0 + dq, p0 + dp
+        q1 = q0 + dq
         V = lambda q: H(q, jnp.zeros_like(p0))
         slope = _radial_slope(V, q0, q1)
         r_q = dq - h * jax.grad(H, argnums=1)(q0 + 0.5 * dq, p0 + 0.5 * dp)

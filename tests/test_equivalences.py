@@ -2,7 +2,6 @@
 against an independent NumPy/SciPy implementation, and the structure each method preserves."""
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.optimize import root
