@@ -11,15 +11,16 @@ iteration of ``Z = h Phi(Z)``: every method's residual has Jacobian I at h = 0) 
 inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and kept across elements (the
 simplified Newton method, as in Hairer and Wanner's Radau5). A member leaves the fixed-point
 iteration, for good, when it contracts too slowly; it refreshes its Newton matrix when that
-contracts too slowly or an update with it goes astray. Small systems start with Newton.
+contracts too slowly or an update with it goes astray (the update is rejected), and halves a
+full Newton step that does not lower the residual. Small systems start with Newton.
 
 Stopping rule: a member stops when the error left after its update, ``|dZ| theta / (1 - theta)``
 (theta the contraction rate), is below the round-off ``eps |Z|`` of the unknowns, or when its
-updates stop shrinking below ``sqrt(eps)`` of the state (the round-off floor of an
-ill-conditioned system); a growing update is never applied, and the residual at the accepted
-iterate must be below ``sqrt(eps)`` of the state. Iterating to the floor, not to a tolerance,
-leaves no systematic iteration error in the states, so round-off grows like sqrt(n)
-(Brouwer's law), not like n.
+updates stop shrinking: at the round-off of the state whatever K, below ``sqrt(eps)`` of the
+state only with a fresh Newton matrix (the floor of an ill-conditioned system). A growing
+update is never applied, and the residual at the accepted iterate must be below ``sqrt(eps)``
+of the state. Iterating to the floor, not to a tolerance, leaves no systematic iteration
+error in the states, so round-off grows like sqrt(n) (Brouwer's law), not like n.
 
 Derivatives come from the implicit function theorem (``implicit``), never from the iterations.
 """
@@ -161,7 +162,7 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
         asked, inverse = c["asked"], c["inverse"]
         if not dense:
             return c
-        inverse, served = jax.lax.cond(jnp.any(asked), refreshed, lambda Z, inverse, _: (inverse, jnp.zeros_like(_)),
+        inverse, served = jax.lax.cond(jnp.any(asked), refreshed, lambda Z, inverse, asked: (inverse, jnp.zeros_like(asked)),
                                        c["Z"], inverse, asked)
         return dict(c, inverse=inverse, newton=c["newton"] | served, fresh=c["fresh"] | served,
                     damping=jnp.where(served, 1.0, c["damping"]), asked=asked & ~served)
@@ -177,7 +178,7 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
     def iterating(c):
         return (c["trips"] < max_iterations) & jnp.any(flag(c, "active") & ~flag(c, "asked"))
 
-    def round(c):
+    def one_round(c):
         """One run (B = 1): refresh once per round, then iterate until the member converges,
         fails or asks again; a conditional costs as much as an iteration of a small system."""
         return jax.lax.while_loop(iterating, body, pack(refresh(unpack(c))))
@@ -259,7 +260,7 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
         damping=jnp.ones(B, dtype), step=nan, rate=nan, last=nan, r_size=r0_size, active=ok & ~skip, iterations=jnp.zeros(B, jnp.int32),
         status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32),
     )
-    c = unpack(jax.lax.while_loop(rounds, round if B == 1 else batch_iteration, pack(init)))
+    c = unpack(jax.lax.while_loop(rounds, one_round if B == 1 else batch_iteration, pack(init)))
     status = jnp.where(c["active"], Status.NEWTON_MAX_ITERATIONS, c["status"]).astype(jnp.int32)
     # a failed member's unknowns become its constant predictor: a finite point for the
     # linearisation, so no NaN reaches the others' gradients (its outputs are masked)
