@@ -68,6 +68,8 @@ METHODS = {
     "cG(1) Gauss 2": gj.CG(1, gj.gauss_legendre(2)),
     "cG(3) Gauss 4": gj.CG(3, gj.gauss_legendre(4)),
     "dG(1) Gauss 2": gj.DG(1, gj.gauss_legendre(2)),
+    "DiscreteGradient": gj.DiscreteGradient(),
+    "DiscreteGradient, excess from H values": gj.DiscreteGradient(line_points=0),
 }
 
 
