@@ -1,5 +1,6 @@
 """Timing and result-writing helpers shared by the benchmarks."""
 
+import contextlib
 import json
 import pathlib
 import platform
@@ -62,3 +63,19 @@ def best_time(call, *args, repeat=3, min_s=0.1, budget_s=3.0):
         if elapsed > budget_s or (len(times) >= repeat and elapsed > min_s):
             break
     return min(times)
+
+
+@contextlib.contextmanager
+def figure(path, ncols=1, size=(6, 4.5)):
+    """``with figure(path) as axes``: a headless Matplotlib figure of ``ncols`` Axes side by
+    side (each ``size`` inches), laid out and saved to ``path`` (dpi 100) on exit."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, ncols, figsize=(size[0] * ncols, size[1]), squeeze=False)
+    yield axes[0]
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -36,7 +36,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import _peers as peers  # noqa: E402
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, best_time, compiled, machine, write  # noqa: E402
+from _common import RESULTS, best_time, compiled, figure, machine, write  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
 
 # SciPy raises rtol = 1e-14 to 100 eps and says so; the reference asks for it on purpose.
@@ -117,8 +117,9 @@ def measure(run, z0, quick):
     """Compile (JAX) or warm up (SciPy) ``run``, call it, and time it only if it succeeded.
 
     Returns:
-        ``(row, z1)``: row has compile_s, run_s (None when failed), status (the largest
-        code), failed (members with a nonzero status) and ok; z1 is the final state (NumPy).
+        ``(row, z1, retime)``: row has compile_s, run_s (None when failed), status (the
+        largest code), failed (members with a nonzero status) and ok; z1 is the final state
+        (NumPy); ``retime()`` times the compiled run again.
     """
     compile_s, call = (0.0, run) if peers.is_python(run) else compiled(run, z0)
     z1, status = call(z0)
@@ -126,19 +127,24 @@ def measure(run, z0, quick):
     ok = bool(np.all(status == 0))
     retime = lambda: best_time(call, z0, repeat=1 if quick else 3, budget_s=1.0 if quick else 3.0)
     row = {"compile_s": compile_s, "run_s": retime() if ok else None, "status": int(status.max()),
-           "failed": int((status != 0).sum()), "ok": ok, "retime": retime if ok else None}
-    return row, np.asarray(z1)
+           "failed": int((status != 0).sum()), "ok": ok}
+    return row, np.asarray(z1), retime
+
+
+def per_step(row):
+    """Sets ``row``'s us_per_step from its run_s and n_steps."""
+    row["us_per_step"] = 1e6 * row["run_s"] / row["n_steps"] if row["ok"] else None
 
 
 def fixed_run(solver, H, z0, h, n, quick):
     """One fixed-step run of ``n`` steps of ``h``: the measured row with the per-step time and
     the relative energy change at the end (batched ``z0``: the largest over members)."""
-    row, z1 = measure(SOLVERS[solver](H, n * h, n), z0, quick)
+    row, z1, retime = measure(SOLVERS[solver](H, n * h, n), z0, quick)
     row.update(solver=solver, n_steps=n, h=h)
-    row["us_per_step"] = 1e6 * row["run_s"] / n if row["ok"] else None
+    per_step(row)
     H0, H1 = (np.array([energy(H, x) for x in np.atleast_2d(z)]) for z in (z0, z1))
     row["energy_error"] = float(np.max(np.abs(H1 - H0) / np.abs(H0)))
-    return row, z1
+    return row, z1, retime
 
 
 def show(row, **extra):
@@ -150,22 +156,25 @@ def show(row, **extra):
 
 def work_precision(scene, T, reference, scale, knobs, quick):
     """Every solver over its knobs: run time and final error ``max|z1 - reference| / scale``."""
-    z0, rows = state(scene), []
+    z0, rows, retimes = state(scene), [], []
     for solver, values in knobs.items():
         for knob in [values[len(values) // 2]] if quick else values:
             if solver in ADAPTIVE:
-                row, z1 = measure(SOLVERS[solver](scene.H, T, knob), z0, quick)
+                row, z1, retime = measure(SOLVERS[solver](scene.H, T, knob), z0, quick)
                 row.update(solver=solver, tol=knob)
             else:
-                row, z1 = fixed_run(solver, scene.H, z0, T / knob, knob, quick)
+                row, z1, retime = fixed_run(solver, scene.H, z0, T / knob, knob, quick)
             row["error"] = float(np.max(np.abs(z1 - reference)) / scale) if row["ok"] else None
             show(row, error=row["error"])
             rows.append(row)
+            retimes.append(retime)
     # a second pass, minutes after the first: this machine's speed drifts for seconds at a
     # time, and the cheapest run at a threshold is a comparison of single timings
-    for row in rows:
+    for row, retime in zip(rows, retimes):
         if row["ok"]:
-            row["run_s"] = min(row["run_s"], row["retime"]())
+            row["run_s"] = min(row["run_s"], retime())
+            if "n_steps" in row:
+                per_step(row)
     return {"T": T, "runs": rows, "cheapest": {e: cheapest(rows, float(e)) for e in THRESHOLDS}}
 
 
@@ -206,7 +215,7 @@ def quartic_part(quick):
 def calibrated_run(solver, H, z0, h, target_s, quick, probe=10):
     """A fixed-step run of about ``target_s``: a probe of ``probe`` steps sets the step count
     (each count is a new compilation); with ``quick`` the probe is the run."""
-    row, _ = fixed_run(solver, H, z0, h, probe, quick)
+    row, _, _ = fixed_run(solver, H, z0, h, probe, quick)
     if quick or not row["ok"] or row["run_s"] >= target_s / 4:
         return row
     n = int(float(f"{probe * target_s / row['run_s']:.2g}"))  # two significant digits
@@ -254,7 +263,7 @@ def batch_part(quick, size=256, h=0.01, n=1000):
     print(f"{size} Kepler orbits, e = 0.1 .. 0.7, {n} steps of h = {h:g}: microseconds per member-step", flush=True)
     rows = {}
     for name, run in runs.items():
-        row, z1 = measure(run, z0, quick)
+        row, z1, _ = measure(run, z0, quick)
         row.update(solver=name, members=size, n_steps=n, h=h)
         row["us_per_member_step"] = 1e6 * row["run_s"] / (size * n) if row["ok"] else None
         row["error"] = float(np.max(np.abs(z1 - exact)))
@@ -270,7 +279,7 @@ def long_part(quick, h=0.01):
     print(f"Kepler e = 0.6, {n} steps of h = {h:g}: microseconds per step", flush=True)
     rows = {}
     for solver in ("cG(3)+Gauss 3", "cG(1)+midpoint", "Gauss RK s=3", "diffrax Dopri8", "leapfrog"):
-        row, z1 = fixed_run(solver, scene.H, state(scene), h, n, quick)
+        row, z1, _ = fixed_run(solver, scene.H, state(scene), h, n, quick)
         row["error"] = float(np.max(np.abs(z1 - exact)))
         show(row, us_per_step=row["us_per_step"], energy_error=row["energy_error"], error=row["error"])
         rows[solver] = row
@@ -355,26 +364,21 @@ def table(results):
 
 def plot(results, path):
     """Error against run time, log-log, one line per solver (library solid, peers dashed)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     parts = [p for p in ("kepler", "quartic") if p in results]
-    fig, axes = plt.subplots(1, len(parts), figsize=(6.5 * len(parts), 5), squeeze=False)
     colors = list(plt.cm.tab10.colors) + ["black", "navy", "maroon"]  # one per solver
-    for ax, part in zip(axes[0], parts):
-        for i, solver in enumerate(SOLVERS):
-            runs = [r for r in results[part]["runs"] if r["solver"] == solver and r["ok"]]  # in knob order
-            ax.loglog([r["run_s"] for r in runs], [r["error"] for r in runs], "-" if solver in LIBRARY else "--",
-                      marker="osD^v<>pPX*hd"[i], color=colors[i], label=solver, ms=4)
-        ax.set_xlabel("run time [s] (compile excluded)")
-        ax.set_ylabel(results[part]["error"])
-        ax.set_title({"kepler": "Kepler e = 0.6, T = 20", "quartic": "quartic central force, c = 1000, T = 1"}[part])
-        ax.grid(True, which="major", alpha=0.3)
-    axes[0][-1].legend(fontsize=7, loc="best")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    with figure(path, ncols=len(parts), size=(6.5, 5)) as axes:
+        for ax, part in zip(axes, parts):
+            for i, solver in enumerate(SOLVERS):
+                runs = [r for r in results[part]["runs"] if r["solver"] == solver and r["ok"]]  # in knob order
+                ax.loglog([r["run_s"] for r in runs], [r["error"] for r in runs], "-" if solver in LIBRARY else "--",
+                          marker="osD^v<>pPX*hd"[i], color=colors[i], label=solver, ms=4)
+            ax.set_xlabel("run time [s] (compile excluded)")
+            ax.set_ylabel(results[part]["error"])
+            ax.set_title({"kepler": "Kepler e = 0.6, T = 20", "quartic": "quartic central force, c = 1000, T = 1"}[part])
+            ax.grid(True, which="major", alpha=0.3)
+        axes[-1].legend(fontsize=7, loc="best")
 
 
 def versions():
@@ -383,15 +387,6 @@ def versions():
 
     return {"diffrax": diffrax.__version__, "optimistix": optimistix.__version__, "scipy": scipy.__version__,
             "numpy": np.__version__, "jax_enable_x64": bool(jax.config.jax_enable_x64)}
-
-
-def without_timers(tree):
-    """``tree`` without the rows' ``retime`` callables (not JSON)."""
-    if isinstance(tree, dict):
-        return {k: without_timers(v) for k, v in tree.items() if k != "retime"}
-    if isinstance(tree, list):
-        return [without_timers(v) for v in tree]
-    return tree
 
 
 def main():
@@ -404,7 +399,7 @@ def main():
     suffix = ("_quick" if options.quick else "") + ("" if options.only == list(PARTS) else "_" + "_".join(options.only))
     name = options.name or "peers" + suffix
     before = machine()
-    results = without_timers({part: PARTS[part](options.quick) for part in options.only})
+    results = {part: PARTS[part](options.quick) for part in options.only}
     markdown = table(results)
     RESULTS.mkdir(exist_ok=True)
     if {"kepler", "quartic"} & set(results):

@@ -22,7 +22,7 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, write  # noqa: E402
+from _common import RESULTS, figure, write  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
 
 METHODS = {
@@ -45,25 +45,18 @@ def energy_growth(method, n_steps, scene):
 
 
 def plot(results, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
     eps = np.finfo(float).eps
-    for name, r in results.items():
-        n, e = np.asarray(r["n"][1:]), np.asarray(r["max_error"][1:])
-        ax.loglog(n, np.maximum(e, 1e-17), label=name)
-    n = np.logspace(3, np.log10(max(r["n"][-1] for r in results.values())), 20)
-    ax.loglog(n, eps * np.sqrt(n), "k--", lw=1, label="eps sqrt(n)")
-    ax.loglog(n, eps * n / 100, "k:", lw=1, label="eps n / 100")
-    ax.set_xlabel("elements n")
-    ax.set_ylabel("max |H_m - H_0| / |H_0|, m <= n")
-    ax.set_title("Kepler e = 0.6, h = 0.01: energy round-off")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    with figure(path, size=(6.5, 4.5)) as (ax,):
+        for name, r in results.items():
+            n, e = np.asarray(r["n"][1:]), np.asarray(r["max_error"][1:])
+            ax.loglog(n, np.maximum(e, 1e-17), label=name)
+        n = np.logspace(3, np.log10(max(r["n"][-1] for r in results.values())), 20)
+        ax.loglog(n, eps * np.sqrt(n), "k--", lw=1, label="eps sqrt(n)")
+        ax.loglog(n, eps * n / 100, "k:", lw=1, label="eps n / 100")
+        ax.set_xlabel("elements n")
+        ax.set_ylabel("max |H_m - H_0| / |H_0|, m <= n")
+        ax.set_title("Kepler e = 0.6, h = 0.01: energy round-off")
+        ax.legend(fontsize=7)
 
 
 def main():

@@ -19,7 +19,8 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, timed, write  # noqa: E402
+from _common import RESULTS, figure, timed, write  # noqa: E402
+from galerkin_jax import plot as gj_plot  # noqa: E402
 
 E = 0.5
 Q0 = jnp.array([1.0 - E, 0.0])
@@ -115,20 +116,13 @@ def progress_cost(n_steps=100_000, h=0.01):
 
 
 def plot(table, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4.5))
-    for name, rows in table.items():
-        ax.loglog([r["run_s"] for r in rows], [r["error"] for r in rows], "o-", label=name)
-    ax.set_xlabel("run time [s] (one period)")
-    ax.set_ylabel("max error at t = 2 pi")
-    ax.set_title("Kepler e = 0.5: work-precision")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    runs = {name: ([r["run_s"] for r in rows], [r["error"] for r in rows]) for name, rows in table.items()}
+    with figure(path) as (ax,):
+        gj_plot.work_precision(runs, ax=ax)
+        ax.set_xlabel("run time [s] (one period)")
+        ax.set_ylabel("max error at t = 2 pi")
+        ax.set_title("Kepler e = 0.5: work-precision")
+        ax.legend(fontsize=8)
 
 
 def main():
