@@ -74,6 +74,12 @@ def predictor(method, q, p, previous, misses, count):
     return continued + weights[0] * misses[0] + weights[1] * misses[1], continued, method.initial_guess(q, p)
 
 
+# the run's counters, carried as one int32 array (one fused kernel per element, not five);
+# the count of elements done stays apart: it depends on nothing a vmap maps over
+COUNTERS = ("status", "total", "most", "trips", "count")
+_AT = {name: i for i, name in enumerate(COUNTERS)}
+
+
 def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, checkpoint=False, dense=False,
           observe=None, acc0=None, progress=False, estimate=True):
     """Chain ``n_blocks * block_size`` elements of one run.
@@ -85,59 +91,56 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, c
         progress: drive a progress bar from inside the loop (``_progress``).
         estimate: compute each element's local error estimate (else it is NaN).
     Returns:
-        ``(final, saved, polynomials)``: ``final`` holds ``q, p, status, total, most, trips,
-        estimate, acc``; ``saved = (qs, ps)`` of shape ``(n_blocks, d)``, the state at the
-        end of each block; ``polynomials`` is ``(Z_starts, W)`` per element or None. States
-        and the estimate of a failed run are NaN.
+        ``(final, saved, polynomials)``: ``final`` holds ``q, p, estimate, acc`` and the
+        ``COUNTERS`` (``status``, ``total`` and ``most`` Newton iterations, ``trips`` of the
+        batch); ``saved = (qs, ps)`` of shape ``(n_blocks, d)``, the state at the end of each
+        block; ``polynomials`` is ``(Z_starts, W)`` per element or None. States and the
+        estimate of a failed run are NaN.
     """
     fn = element_residual(H)
     H_bound = bind_args(H, args)
+    d = q0.shape[0]
+    split = lambda z: (z[:d], z[d:])
+    z0 = jnp.concatenate([q0, p0])
     guess = method.initial_guess(q0, p0)
-    status0 = input_status(q0, p0, h)
-    zero = jnp.zeros((), jnp.int32)
-    start = dict(q=q0, p=p0, previous=(q0, p0, guess))
-    carry = dict(
-        start, cq=jnp.zeros_like(q0), cp=jnp.zeros_like(p0), misses=(jnp.zeros_like(guess),) * 2, count=zero,
-        matrix=initial_matrix(guess), status=status0, total=zero, most=zero,
-        trips=zero, estimate=jnp.zeros((), q0.dtype), acc=acc0, done=zero,
-    )
+    counters0 = jnp.zeros(len(COUNTERS), jnp.int32).at[_AT["status"]].set(input_status(q0, p0, h))
+    # the state a failed run carries from then on (no NaN enters the linearisation, nor,
+    # under vmap, the others' gradients), and whose scale starts a run
+    start = dict(z=z0, z_prev=z0, Z_prev=guess, scale=jnp.max(jnp.abs(z0)))
+    carry = dict(start, comp=jnp.zeros_like(z0), misses=(jnp.zeros_like(guess),) * 2, matrix=initial_matrix(guess),
+                 counters=counters0, done=jnp.zeros((), jnp.int32), estimate=jnp.zeros((), z0.dtype), acc=acc0)
     total = n_blocks * block_size
 
     def element(c):
-        q, p, failed = c["q"], c["p"], c["status"] != Status.SUCCESS
-        Z_pred, continued, constant = predictor(method, q, p, c["previous"], c["misses"], c["count"])
-        scale = jnp.maximum(jnp.max(jnp.abs(q)), jnp.max(jnp.abs(p)))
+        z, counters = c["z"], c["counters"]
+        (q, p), failed = split(z), counters[_AT["status"]] != Status.SUCCESS
+        previous = (*split(c["z_prev"]), c["Z_prev"])
+        Z_pred, continued, constant = predictor(method, q, p, previous, c["misses"], counters[_AT["count"]])
         Z, matrix, iterations, status, trips = solve(
-            fn, (method, q, p, h, args), Z_pred, constant, c["matrix"], scale, failed, max_iterations)
-        dq, dp = method.increment(H_bound, q, p, Z, h)
-        q1, cq = compensated_add(q, dq, c["cq"])
-        p1, cp = compensated_add(p, dp, c["cp"])
+            fn, (method, q, p, h, args), Z_pred, constant, c["matrix"], c["scale"], failed, max_iterations)
+        z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
+        scale = jnp.max(jnp.abs(z1))  # the next element's scale; propagates NaN and inf
         # an estimate, not a function to differentiate (and no 0 * inf from a failed run's)
         frozen = jax.lax.stop_gradient((q, p, Z, h, args))
         local = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4])) if estimate else jnp.nan
-        finite = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
-        status = jnp.where((status == Status.SUCCESS) & ~finite, Status.NONFINITE, status)
-        status = jnp.where(failed, c["status"], status).astype(jnp.int32)  # the first failure is kept
-        # after a failure the run carries its finite start as a stand-in and is not solved
-        # again: no NaN enters the linearisation, nor (under vmap) the others' gradients
-        now = dict(q=q1, p=p1, previous=(q, p, Z))
-        now = jax.tree.map(lambda a, b: jnp.where(status == Status.SUCCESS, b, a), start, now)
-        misses = (jnp.where(c["count"] >= 1, Z - continued, c["misses"][0]), c["misses"][0])
-        acc = c["acc"] if observe is None else observe(c["acc"], now["q"], now["p"])
-        new = dict(
-            c, **now, cq=cq, cp=cp, misses=misses, count=jnp.minimum(c["count"] + 1, 3), matrix=matrix,
-            status=status, total=c["total"] + iterations, most=jnp.maximum(c["most"], iterations),
-            trips=c["trips"] + trips, estimate=jnp.maximum(c["estimate"], local), acc=acc, done=c["done"] + 1,
-        )
+        status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(scale), Status.NONFINITE, status)
+        status = jnp.where(failed, counters[_AT["status"]], status)  # the first failure is kept
+        ok = status == Status.SUCCESS
+        now = jax.tree.map(lambda a, b: jnp.where(ok, b, a), start, dict(z=z1, z_prev=z, Z_prev=Z, scale=scale))
+        count = counters[_AT["count"]]
+        misses = (jnp.where(count >= 1, Z - continued, c["misses"][0]), c["misses"][0])
+        acc = c["acc"] if observe is None else observe(c["acc"], *split(now["z"]))
+        counters = jnp.stack([status, counters[_AT["total"]] + iterations, jnp.maximum(counters[_AT["most"]], iterations),
+                              counters[_AT["trips"]] + trips, jnp.minimum(count + 1, 3)])
+        new = dict(c, **now, comp=comp, misses=misses, matrix=matrix, counters=counters.astype(jnp.int32),
+                   done=c["done"] + 1, estimate=jnp.maximum(c["estimate"], local), acc=acc)
         if progress:
             _progress.report(new["done"], total, _progress.stride(total))
-        kept = None
-        if dense:
-            kept = (jnp.concatenate([q, p]), method.polynomial(H_bound, q, p, Z, h))
+        kept = (z, method.polynomial(H_bound, q, p, Z, h)) if dense else None
         return new, kept
 
     def reported(c):
-        return nan_if_failed(c["q"], c["status"]), nan_if_failed(c["p"], c["status"])
+        return split(nan_if_failed(c["z"], c["counters"][_AT["status"]]))
 
     def block(c, _):
         c, kept = jax.lax.scan(lambda c, _: element(c), c, None, length=block_size)
@@ -147,7 +150,9 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, c
         block = jax.checkpoint(block)
     final, (saved, kept) = jax.lax.scan(block, carry, None, length=n_blocks)
     q, p = reported(final)
-    final = dict(final, q=q, p=p, estimate=nan_if_failed(final["estimate"], final["status"]))
+    status = final["counters"][_AT["status"]]
+    results = dict(q=q, p=p, estimate=nan_if_failed(final["estimate"], status), acc=final["acc"],
+                   **{name: final["counters"][i] for i, name in enumerate(COUNTERS)})
     if kept is not None:
         kept = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), kept)
-    return final, saved, kept
+    return results, saved, kept

@@ -6,13 +6,24 @@ explicit batch axis B: a ``custom_vmap`` rule folds any ``vmap`` axes into it, s
 run pays for a Jacobian only in the iterations where some member asks for one (under a
 plain ``vmap`` a ``lax.cond`` becomes a ``select`` that runs both branches every time).
 
-Iteration (per member): ``Z <- Z - K R(Z)`` with ``K`` either the identity (the fixed-point
-iteration of ``Z = h Phi(Z)``: every method's residual has Jacobian I at h = 0) or the
-inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and kept across elements (the
-simplified Newton method, as in Hairer and Wanner's Radau5). A member leaves the fixed-point
-iteration, for good, when it contracts too slowly; it refreshes its Newton matrix when that
-contracts too slowly or an update with it goes astray (the update is rejected), and halves a
-full Newton step that does not lower the residual. Small systems start with Newton.
+Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
+
+* The fixed-point phase: ``K = I``, the fixed-point iteration of ``Z = h Phi(Z)`` (every method
+  whose residual has Jacobian I at h = 0), in blocks of ``FIXED_POINT_BLOCK`` updates checked
+  once at the block's end. Its loop carries no matrix, so a run that never needs Newton never
+  pays for one. A member leaves it for good when it contracts too slowly or takes too many
+  iterations in one element (dG's residual, whose Jacobian at h = 0 is not I, never
+  contracts: it moves to Newton at once).
+* The Newton phase: ``K`` the inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and
+  kept across elements (the simplified Newton method, as in Hairer and Wanner's Radau5), one
+  checked update at a time. A member refreshes its matrix when it contracts too slowly or an
+  update goes astray (the update is rejected), and halves a full Newton step that does not
+  lower the residual. Small systems solve a run's first element by Newton (the predictor has
+  no history yet) and return to the fixed point after it.
+
+The loop's cost is mostly per check, not per update: the decisions, the sizes and the loop's
+trip are each a kernel that XLA's CPU runtime launches on its own. A block of two fixed-point
+updates costs little more than one; a rejected block is undone as a whole.
 
 Stopping rule: a member stops when the error left after its update, ``|dZ| theta / (1 - theta)``
 (theta the contraction rate), is below the round-off ``eps |Z|`` of the unknowns, or when its
@@ -22,11 +33,13 @@ update is never applied, and the residual at the accepted iterate must be below 
 of the state. An accepted iterate gets one more update from its residual, which is already
 known (a product, no residual). Iterating to the floor, not to a tolerance, and that last
 update leave no systematic iteration error in the states, so round-off grows like sqrt(n)
-(Brouwer's law), not like n.
+(Brouwer's law), not like n. Sizes are root-mean-square norms over a member's unknowns (a
+sum of squares is one cheap reduction; NaN and inf propagate through it).
 
 Derivatives come from the implicit function theorem (``implicit``), never from the iterations.
 """
 
+import dataclasses
 import enum
 import functools
 
@@ -65,12 +78,17 @@ def status_message(status):
 
 
 DENSE_LIMIT = 256  # unknowns per element up to which a dense Newton matrix is kept
-NEWTON_FIRST = 32  # unknowns per element up to which a run starts with Newton, not fixed point
-THETA_NEWTON = 0.03  # Newton contraction rate above which a small system refreshes its matrix
-THETA_NEWTON_LARGE = 0.25  # ... and a large one (n > NEWTON_FIRST), whose refresh costs n^3
-THETA_FIXED_POINT = 0.5  # fixed-point rate above which a member switches to Newton
+SMALL = 32  # unknowns per element up to which a Newton refresh is cheap
+# Contraction rates above which a member switches from the fixed-point iteration to Newton,
+# and refreshes its Newton matrix, for small systems (n <= SMALL) and large ones. A small
+# system's Newton update costs two to three fixed-point ones (measured on Kepler): at a rate
+# of 0.15 the fixed point needs three times the iterations of simplified Newton. A large one's
+# costs a product with an n x n matrix and, per refresh, n residual derivatives and an inverse.
+THETA_FIXED_POINT = (0.15, 0.5)
+THETA_NEWTON = (0.03, 0.25)
 PATIENCE = 8  # iterations in one element after which a Newton member refreshes anyway
-PATIENCE_FIXED_POINT = 24  # ... and a fixed-point member switches to Newton
+PATIENCE_FIXED_POINT = (12, 24)  # ... and a fixed-point member switches to Newton (small, large)
+FIXED_POINT_BLOCK = 2  # fixed-point updates per check (module docstring)
 
 
 @pytree_dataclass
@@ -79,14 +97,23 @@ class Matrix:
 
     Attributes:
         newton: bool, shape ``(B,)`` (or ``()`` for one run): K is a Newton matrix, not I.
-        pending: bool, like ``newton``: K is to be computed before its first use.
+        first: bool, like ``newton``: the run's first element. A small system solves it by
+            Newton, since the fixed point from the constant state, with no history for the
+            predictor, is slow; the next element starts with the fixed point again.
         inverse: ``(B, n, n)`` inverse Jacobians, or None when n > ``DENSE_LIMIT`` (then the
             iteration is the fixed-point one only).
     """
 
     newton: jax.Array
-    pending: jax.Array
+    first: jax.Array
     inverse: object
+
+
+def initial_matrix(Z):
+    """``Matrix`` for the first element of one run."""
+    n = Z.size
+    false, true = jnp.asarray(False), jnp.asarray(True)
+    return Matrix(newton=false, first=true, inverse=None if n > DENSE_LIMIT else jnp.zeros((n, n), Z.dtype))
 
 
 def _matvec(K, r):
@@ -98,8 +125,11 @@ def _matvec(K, r):
     return total
 
 
-def _size(x):
-    return jnp.max(jnp.abs(x.reshape(x.shape[0], -1)), axis=1)
+def sizes(*arrays):
+    """The root-mean-square of each member of each array (leading axis B), in one reduction:
+    an array of shape ``(len(arrays), B)``."""
+    x = jnp.stack([a.reshape(a.shape[0], -1) for a in arrays])
+    return jnp.sqrt(jnp.mean(x * x, axis=-1))
 
 
 def _select(mask, x, y):
@@ -116,185 +146,232 @@ def block_jacobians(residual, Z):
     return jnp.moveaxis(columns.reshape(n, B, n), 0, -1)
 
 
-def initial_matrix(Z):
-    """``Matrix`` for the first element of one run: Newton (a Jacobian at the first iterate)
-    for small systems, the fixed-point iteration otherwise."""
-    n = Z.size
-    newton = jnp.asarray(n <= NEWTON_FIRST)
-    return Matrix(newton=newton, pending=newton, inverse=None if n > DENSE_LIMIT else jnp.zeros((n, n), Z.dtype))
+@dataclasses.dataclass(frozen=True)
+class _Problem:
+    """The element equations of a batch and what every phase of the iteration reads."""
+
+    fn: object  # (Z, params) -> R for one member
+    params: object  # leading axis B
+    scale: jax.Array  # (B,): the size of the state the unknowns are increments of
+    max_iterations: int
+    dense: bool  # a Newton matrix can be had
+
+    def residual(self, Z):
+        return jax.vmap(self.fn)(Z, self.params)
 
 
-def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
-    """The iteration for a batch (every argument has a leading axis B); see the module docstring.
-
-    ``Z_alt`` is a second predictor (the constant state), tried only where ``Z_pred``'s residual
-    is not small against ``Z_pred`` (a continued polynomial can overshoot at large h omega).
-    Returns ``(Z, matrix, iterations, status, trips)``; ``trips`` is the loop count of the batch.
-    """
-    B, n, dtype = Z_pred.shape[0], Z_pred[0].size, Z_pred.dtype
-    eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
-    dense = matrix.inverse is not None
-    residual = lambda Z: jax.vmap(fn)(Z, params)
-
-    def rival(Z, r):
-        r_alt = residual(Z_alt)
-        better = (_size(r_alt) < _size(r)) | ~jnp.isfinite(_size(r))
-        return _select(better, Z_alt, Z), _select(better, r_alt, r)
-
-    r_pred = residual(Z_pred)
-    doubtful = ~(_size(r_pred) < 0.1 * _size(Z_pred)) & ~skip
-    Z0, r0 = jax.lax.cond(jnp.any(doubtful), rival, lambda Z, r: (Z, r), Z_pred, r_pred)
-
-    capacity = B if B <= 8 else max(8, B // 8)  # members whose Jacobians one refresh computes
-
-    def refreshed(Z, inverse, asked):
-        """Inverse Jacobians for up to ``capacity`` of the members that asked, gathered so
-        that the work follows the askers, not the batch; returns ``(inverse, served)``."""
-        if capacity == B:
-            return _select(asked, jnp.linalg.inv(block_jacobians(residual, Z)), inverse), asked
-        index = jnp.nonzero(asked, size=capacity, fill_value=B)[0]
-        take = lambda x: x[jnp.minimum(index, B - 1)]
-        sub = jax.tree.map(take, params)
-        J = block_jacobians(lambda Z: jax.vmap(fn)(Z, sub), take(Z))
-        inverse = inverse.at[index].set(jnp.linalg.inv(J), mode="drop")
-        return inverse, jnp.zeros(B, bool).at[index].set(True, mode="drop")
-
-    def refresh(c):
-        """Fresh matrices for the members that asked (those beyond ``capacity`` keep asking)."""
-        asked, inverse = c["asked"], c["inverse"]
-        if not dense:
-            return c
-        inverse, served = jax.lax.cond(jnp.any(asked), refreshed, lambda Z, inverse, asked: (inverse, jnp.zeros_like(asked)),
-                                       c["Z"], inverse, asked)
-        return dict(c, inverse=inverse, newton=c["newton"] | served, fresh=c["fresh"] | served,
-                    damping=jnp.where(served, 1.0, c["damping"]), asked=asked & ~served)
-
-    # one run: the scalars packed (fewer kernel launches); a batch: apart (a packed group is a
-    # concatenate, whose per-element indexing XLA does not vectorise)
-    pack, unpack = (_pack, _unpack) if B == 1 else (lambda c: c, lambda c: c)
-    flag = lambda c, name: c["flags"][_GROUPS["flags"].index(name)] if B == 1 else c[name]
-
-    def rounds(c):
-        return (c["trips"] < max_iterations) & jnp.any(flag(c, "active"))
-
-    def iterating(c):
-        return (c["trips"] < max_iterations) & jnp.any(flag(c, "active") & ~flag(c, "asked"))
-
-    def one_round(c):
-        """One run (B = 1): refresh once per round, then iterate until the member converges,
-        fails or asks again; a conditional costs as much as an iteration of a small system."""
-        return jax.lax.while_loop(iterating, body, pack(refresh(unpack(c))))
-
-    def batch_iteration(c):
-        """A batch: the askers are served at once, every iteration (the conditional is cheap
-        against the batch's work, and nobody waits for a round to end)."""
-        return body(pack(refresh(unpack(c))))
-
-    def update(r, newton, inverse, damping):
-        """``damping K r`` per member, flat: K the Newton inverse where ``newton``, else I."""
-        r_flat = r.reshape(B, -1)
-        dz = r_flat
-        if dense and n <= NEWTON_FIRST:  # fused, no conditional: cheaper than skipping it
-            dz = _select(newton, _matvec(inverse, r_flat), r_flat)
-        elif dense:  # only in iterations where some member uses Newton
-            dz = jax.lax.cond(jnp.any(newton), lambda: _select(newton, jnp.einsum("bij,bj->bi", inverse, r_flat), r_flat),
-                              lambda: r_flat)
-        return damping[:, None] * dz
-
-    def body(c):
-        c = unpack(c)
-        Z, r, newton, fresh, inverse, damping = c["Z"], c["r"], c["newton"], c["fresh"], c["inverse"], c["damping"]
-        moving = c["active"] & ~c["asked"]  # members that asked wait for their matrix
-        dz = update(r, newton, inverse, damping)
-        Z_new = Z - dz.reshape(Z.shape)
-        r_new = residual(Z_new)
-        # max propagates NaN, so a non-finite update or residual shows in ``step`` or
-        # ``r_size``; one run takes the three sizes in one reduction (one launch)
-        if B == 1:
-            step, z_size, r_size = jnp.max(jnp.abs(jnp.stack([dz, Z_new.reshape(B, -1), r_new.reshape(B, -1)])), axis=-1)
-        else:
-            step, z_size, r_size = _size(dz), _size(Z_new), _size(r_new)
-        bad = ~jnp.isfinite(step + r_size)
-        rate = step / c["step"]  # NaN until a member has two updates with one K
-        theta = jnp.fmax(rate, c["rate"])
-        floor = jnp.sqrt(eps) * (scale + z_size + tiny)
-        noisy = step <= 100.0 * eps * (scale + z_size)  # updates this small are round-off, not a slow K
-        # the error left after this update is below the round-off of the unknowns. (Allowing a
-        # tenth of the state's instead, 9 % fewer iterations, left a bias of +0.008 eps |H| per
-        # step in the discrete gradient's energy on Kepler: 2.4e-12 after 1e6 steps, not 6e-13.)
-        small = (step == 0) | ((theta <= 0.5) & (step * theta <= (1.0 - theta) * eps * z_size))
-        accept_here = small & ~bad & (r_size <= floor)
-        # the updates stopped shrinking at the round-off floor: keep Z, never the growing update.
-        # Below sqrt(eps) only with a fresh Newton K (a stale K can stall far from the root; it
-        # is refreshed instead); at the round-off of the state whatever the K.
-        stale = ~(newton & fresh)  # a fixed-point K, or a Newton K from an earlier iterate
-        stalled = ((~stale & (rate >= 1.0) & (step <= floor)) | (noisy & (step >= c["last"]))) & (c["r_size"] <= floor)
-        done = moving & (accept_here | stalled)
-        going = moving & ~done
-        rejected = going & stale & (bad | (rate > 1.0))
-        # a Newton step with a fresh K that does not lower the residual is halved (far from the
-        # root, e.g. at h omega ~ 1, Newton's full steps can wander)
-        backtrack = going & ~stale & (bad | (r_size >= c["r_size"])) & ~noisy & (damping > 1.0 / 64)
-        failed = going & ~stale & bad & ~backtrack
-        take = (done & accept_here) | (going & ~rejected & ~failed & ~backtrack)
-        # computed once: without the barrier XLA repeats the decisions above in every fusion
-        # that reads them (the selects below, the packed carries), which costs more than the rest
-        take, going, failed, backtrack, rejected = jax.lax.optimization_barrier((take, going, failed, backtrack, rejected))
-        Z, r = _select(take, Z_new, Z), _select(take, r_new, r)
-        iterations = c["iterations"] + moving
-        status = jnp.where(failed, Status.NONFINITE, c["status"])
-        active = (c["active"] & ~moving) | (going & ~failed)
-        slow = theta > jnp.where(newton, THETA_NEWTON if n <= NEWTON_FIRST else THETA_NEWTON_LARGE, THETA_FIXED_POINT)
-        patience = iterations >= jnp.where(newton, PATIENCE, PATIENCE_FIXED_POINT)
-        unsure = small & ~bad & stale  # a small update but a large residual: K is off
-        asked = c["asked"] | (going & ~failed & ~backtrack & (rejected | ((slow | patience) & ~noisy) | unsure) & dense)
-        damping = jnp.where(backtrack, 0.5 * damping, jnp.where(take, jnp.minimum(1.0, 2.0 * damping), damping))
-        restart = asked | backtrack
-        return pack(dict(
-            trips=c["trips"] + 1, Z=Z, r=r, newton=newton, fresh=fresh, inverse=inverse, asked=asked,
-            damping=damping, step=jnp.where(restart, jnp.nan, step), rate=jnp.where(restart, jnp.nan, rate),
-            last=jnp.where(take, step, c["last"]), r_size=jnp.where(take, r_size, c["r_size"]), active=active,
-            iterations=iterations, status=status, accepted=c["accepted"] | (done & accept_here),
-        ))
-
-    r0_size = _size(r0)
-    ok = jnp.isfinite(_size(Z0) + r0_size)
-    nan = jnp.full(B, jnp.nan, dtype)
-    init = dict(
-        trips=jnp.int32(0), Z=Z0, r=r0, newton=matrix.newton, fresh=jnp.zeros(B, bool), inverse=matrix.inverse,
-        asked=matrix.pending & ok & ~skip,
-        damping=jnp.ones(B, dtype), step=nan, rate=nan, last=nan, r_size=r0_size, active=ok & ~skip, iterations=jnp.zeros(B, jnp.int32),
-        status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32), accepted=jnp.zeros(B, bool),
-    )
-    c = unpack(jax.lax.while_loop(rounds, one_round if B == 1 else batch_iteration, pack(init)))
-    # The accepted iterate's residual is already known: one more update with it costs a
-    # product, no residual, and leaves theta times less of the iteration error, which is
-    # systematic (it follows the predictor's smooth miss) and would add up over the elements.
-    polish = update(c["r"], c["newton"], c["inverse"], c["damping"]).reshape(c["Z"].shape)
-    c["Z"] = _select(c["accepted"], c["Z"] - polish, c["Z"])
-    status = jnp.where(c["active"], Status.NEWTON_MAX_ITERATIONS, c["status"]).astype(jnp.int32)
-    # a failed member's unknowns become its constant predictor: a finite point for the
-    # linearisation, so no NaN reaches the others' gradients (its outputs are masked)
-    Z = _select(status == Status.SUCCESS, c["Z"], Z_alt)
-    matrix = Matrix(newton=c["newton"], pending=matrix.pending & ~(ok & ~skip), inverse=c["inverse"])
-    return Z, matrix, c["iterations"], status, jnp.broadcast_to(c["trips"], (B,))
-
-
-# For one run the per-member scalars of the loop travel as three stacked arrays: XLA then
-# computes each group in one fused kernel, not one kernel per scalar (the loop's cost is
-# mostly launches).
-_GROUPS = {"floats": ("damping", "step", "rate", "last", "r_size"), "flags": ("newton", "fresh", "asked", "active", "accepted"),
+# The scalars of each member travel as three stacked arrays for one run: XLA then computes
+# each group in one fused kernel, not one kernel per scalar (the loop's cost is mostly
+# kernel launches). A batch keeps them apart: a packed group is a concatenate, whose
+# per-element indexing XLA does not vectorise.
+_GROUPS = {"floats": ("damping", "step", "rate", "r_size"), "flags": ("newton", "fresh", "asked", "active"),
            "counts": ("iterations", "status")}
 
 
 def _pack(c):
+    if c["Z"].shape[0] > 1:
+        return c
     packed = {k: v for k, v in c.items() if not any(k in names for names in _GROUPS.values())}
     return dict(packed, **{group: jnp.stack([c[k] for k in names]) for group, names in _GROUPS.items()})
 
 
 def _unpack(c):
+    if "flags" not in c:
+        return c
     values = {k: v for k, v in c.items() if k not in _GROUPS}
     return dict(values, **{k: c[group][i] for group, names in _GROUPS.items() for i, k in enumerate(names)})
+
+
+def _flag(c, name):
+    return c["flags"][_GROUPS["flags"].index(name)] if "flags" in c else c[name]
+
+
+def _update(r, inverse, damping):
+    """``damping K r`` per member, flat: K the Newton inverse, or I without one."""
+    r = r.reshape(r.shape[0], -1)
+    if inverse is not None:
+        r = _matvec(inverse, r) if r.shape[1] <= SMALL else jnp.einsum("bij,bj->bi", inverse, r)
+    return damping[:, None] * r
+
+
+def _block(problem, c, inverse, size):
+    """``size`` updates of the moving members, checked once at the end: the one stopping
+    rule (module docstring). ``inverse`` is the Newton phase's matrices, None in the
+    fixed-point phase."""
+    c = _unpack(c)
+    n, dtype = c["Z"][0].size, c["Z"].dtype
+    eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
+    Z0, r0, newton, fresh, damping = c["Z"], c["r"], c["newton"], c["fresh"], c["damping"]
+    mode = newton if inverse is not None else ~newton
+    moving = c["active"] & ~c["asked"] & mode  # members that asked wait for their matrix
+    Z, r, steps = Z0, r0, []
+    for _ in range(size):
+        steps.append(_update(r, inverse, damping))
+        Z = Z - steps[-1].reshape(Z.shape)
+        r = problem.residual(Z)
+    measured = sizes(*steps[-2:], Z, r)
+    step, z_size, r_size = measured[-3], measured[-2], measured[-1]
+    before = measured[0] if size > 1 else c["step"]  # the update before the last, with this K
+    bad = ~jnp.isfinite(step + r_size)
+    rate = step / before  # NaN until a member has two updates with one K
+    theta = jnp.fmax(rate, c["rate"])
+    floor = jnp.sqrt(eps) * (problem.scale + z_size + tiny)
+    noisy = step <= 100.0 * eps * (problem.scale + z_size)  # updates this small are round-off, not a slow K
+    # the error left after this update is below the round-off of the unknowns. (Allowing a
+    # tenth of the state's instead, 9 % fewer iterations, left a bias of +0.008 eps |H| per
+    # step in the discrete gradient's energy on Kepler: 2.4e-12 after 1e6 steps, not 6e-13.)
+    small = (step == 0) | ((theta <= 0.5) & (step * theta <= (1.0 - theta) * eps * z_size))
+    accept_here = small & ~bad & (r_size <= floor)
+    # the updates stopped shrinking at the round-off floor: keep the block's start, never the
+    # growing update. Below sqrt(eps) only with a fresh Newton K (a stale K can stall far from
+    # the root; it is refreshed instead); at the round-off of the state whatever the K.
+    stale = ~(newton & fresh)  # a fixed-point K, or a Newton K from an earlier iterate
+    grown = (step >= before) | (step >= c["step"])  # within the block, or since the last one
+    stalled = ((~stale & (rate >= 1.0) & (step <= floor)) | (noisy & grown)) & (c["r_size"] <= floor)
+    done = moving & (accept_here | stalled)
+    going = moving & ~done
+    rejected = going & stale & (bad | (rate > 1.0))
+    # a Newton step with a fresh K that does not lower the residual is halved (far from the
+    # root, e.g. at h omega ~ 1, Newton's full steps can wander)
+    backtrack = going & ~stale & (bad | (r_size >= c["r_size"])) & ~noisy & (damping > 1.0 / 64)
+    failed = going & ~stale & bad & ~backtrack
+    take = (done & accept_here) | (going & ~rejected & ~failed & ~backtrack)
+    # computed once: without the barrier XLA repeats the decisions above in every fusion
+    # that reads them (the selects below, the packed carries), which costs more than the rest
+    take, going, failed, backtrack, rejected, accepted = jax.lax.optimization_barrier(
+        (take, going, failed, backtrack, rejected, done & accept_here))
+    iterations = c["iterations"] + size * moving
+    large = n > SMALL
+    slow = theta > jnp.where(newton, THETA_NEWTON[large], THETA_FIXED_POINT[large])
+    patience = iterations >= jnp.where(newton, PATIENCE, PATIENCE_FIXED_POINT[large])
+    unsure = small & ~bad & stale  # a small update but a large residual: K is off
+    asked = c["asked"] | (going & ~failed & ~backtrack & (rejected | ((slow | patience) & ~noisy) | unsure) & problem.dense)
+    restart = asked | backtrack
+    # An accepted iterate gets one more update from its residual, already known: a product, no
+    # residual. It leaves theta times less of the iteration error, which is systematic (it
+    # follows the predictor's smooth miss) and would add up over the elements.
+    polished = Z - _update(r, inverse, damping).reshape(Z.shape)
+    return _pack(dict(
+        c, trips=c["trips"] + size, Z=_select(accepted, polished, _select(take, Z, Z0)), r=_select(take, r, r0),
+        asked=asked, active=(c["active"] & ~moving) | (going & ~failed),
+        damping=jnp.where(backtrack, 0.5 * damping, jnp.where(take, jnp.minimum(1.0, 2.0 * damping), damping)),
+        step=jnp.where(moving, jnp.where(restart, jnp.nan, step), c["step"]),
+        rate=jnp.where(moving, jnp.where(restart, jnp.nan, rate), c["rate"]),
+        r_size=jnp.where(take, r_size, c["r_size"]), iterations=iterations,
+        status=jnp.where(failed, Status.NONFINITE, c["status"]),
+    ))
+
+
+def _fixed_point(problem, c):
+    """The fixed-point phase: members not in Newton mode iterate ``Z <- Z - R(Z)`` in blocks
+    until they converge, fail or ask for a Newton matrix. Its loop carries no matrix."""
+
+    def going(c):
+        return (c["trips"] < problem.max_iterations) & jnp.any(
+            _flag(c, "active") & ~_flag(c, "asked") & ~_flag(c, "newton"))
+
+    return jax.lax.while_loop(going, lambda c: _block(problem, c, None, FIXED_POINT_BLOCK), c)
+
+
+def _served(c, served):
+    """The members ``served`` a fresh Newton matrix: Newton mode, full steps, a new rate."""
+    return dict(c, newton=c["newton"] | served, fresh=c["fresh"] | served, damping=jnp.where(served, 1.0, c["damping"]),
+                asked=c["asked"] & ~served, step=jnp.where(served, jnp.nan, c["step"]),
+                rate=jnp.where(served, jnp.nan, c["rate"]))
+
+
+def _refresh(problem, c, inverse):
+    """A batch: fresh Newton matrices at the current iterates for the members that asked, at
+    most ``capacity`` of them, gathered so that the work follows the askers, not the batch;
+    those beyond it keep asking."""
+    B = c["Z"].shape[0]
+    capacity = min(B, max(8, B // 8))
+
+    def refreshed(Z, inverse, asked):
+        index = jnp.nonzero(asked, size=capacity, fill_value=B)[0]
+        take = lambda x: x[jnp.minimum(index, B - 1)]
+        sub = dataclasses.replace(problem, params=jax.tree.map(take, problem.params))
+        inverse = inverse.at[index].set(jnp.linalg.inv(block_jacobians(sub.residual, take(Z))), mode="drop")
+        return inverse, jnp.zeros(B, bool).at[index].set(True, mode="drop")
+
+    inverse, served = jax.lax.cond(jnp.any(c["asked"]), refreshed, lambda Z, inverse, asked: (inverse, jnp.zeros_like(asked)),
+                                   c["Z"], inverse, c["asked"])
+    return _served(c, served), inverse
+
+
+def _newton(problem, c, inverse):
+    """The Newton phase: members in Newton mode, and those that asked for it, iterate with
+    their matrices, one checked update at a time (damping needs each).
+
+    One run refreshes once per round (a conditional costs as much as an iteration of a small
+    system, and one that passes the matrix through copies it), then iterates until it
+    converges, fails or asks again. A batch serves its askers every iteration, so that nobody
+    waits for the others' rounds to end.
+    """
+    within = lambda c: c["trips"] < problem.max_iterations
+    if c["Z"].shape[0] > 1:
+        def step(state):
+            c, inverse = _refresh(problem, *state)
+            return _block(problem, c, inverse, 1), inverse
+
+        moving = lambda c: c["active"] & (c["newton"] | c["asked"])
+        return jax.lax.while_loop(lambda s: within(s[0]) & jnp.any(moving(s[0])), step, (c, inverse))
+
+    def round(state):
+        c, inverse = state
+        fresh = lambda c, _: (_pack(_served(_unpack(c), jnp.ones(1, bool))),
+                              jnp.linalg.inv(block_jacobians(problem.residual, _unpack(c)["Z"])))
+        c, inverse = jax.lax.cond(_flag(c, "asked")[0], fresh, lambda *s: s, c, inverse)
+        going = lambda c: within(c) & jnp.any(_flag(c, "active") & ~_flag(c, "asked"))
+        return jax.lax.while_loop(going, lambda c: _block(problem, c, inverse, 1), c), inverse
+
+    moving = lambda s: within(s[0]) & jnp.any(_flag(s[0], "active") & (_flag(s[0], "newton") | _flag(s[0], "asked")))
+    return jax.lax.while_loop(moving, round, (c, inverse))
+
+
+def _start(problem, Z_pred, Z_alt, skip):
+    """The first iterate and its residual: ``Z_pred``, or the constant ``Z_alt`` where that has
+    the smaller residual and ``Z_pred``'s residual is not small against ``Z_pred`` (a continued
+    polynomial can overshoot at large h omega). Returns ``(Z, r, r_size, ok)``; a non-finite Z
+    has a non-finite residual."""
+    r_pred = problem.residual(Z_pred)
+    z_size, r_size = sizes(Z_pred, r_pred)
+
+    def rival(Z, r, r_size):
+        r_alt = problem.residual(Z_alt)
+        r_alt_size = sizes(r_alt)[0]
+        better = (r_alt_size < r_size) | ~jnp.isfinite(r_size)
+        return _select(better, Z_alt, Z), _select(better, r_alt, r), jnp.where(better, r_alt_size, r_size)
+
+    doubtful = ~(r_size < 0.1 * z_size) & ~skip
+    Z, r, r_size = jax.lax.cond(jnp.any(doubtful), rival, lambda *a: a, Z_pred, r_pred, r_size)
+    return Z, r, r_size, jnp.isfinite(r_size)
+
+
+def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
+    """The iteration for a batch (every argument has a leading axis B); see the module docstring.
+
+    Returns ``(Z, matrix, iterations, status, trips)``; ``trips`` counts the batch's updates.
+    """
+    B, n, dtype = Z_pred.shape[0], Z_pred[0].size, Z_pred.dtype
+    problem = _Problem(fn, params, scale, max_iterations, matrix.inverse is not None)
+    Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
+    nan, false = jnp.full(B, jnp.nan, dtype), jnp.zeros(B, bool)
+    asked = matrix.first & ok & ~skip & problem.dense & (n <= SMALL)
+    c = dict(trips=jnp.int32(0), Z=Z, r=r, newton=matrix.newton, fresh=false, asked=asked, damping=jnp.ones(B, dtype),
+             step=nan, rate=nan, r_size=r_size, active=ok & ~skip, iterations=jnp.zeros(B, jnp.int32),
+             status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
+    c = _fixed_point(problem, _pack(c))
+    inverse = matrix.inverse
+    if inverse is not None:
+        c, inverse = _newton(problem, c, inverse)
+    c = _unpack(c)
+    status = jnp.where(c["active"], Status.NEWTON_MAX_ITERATIONS, c["status"]).astype(jnp.int32)
+    # a failed member's unknowns become its constant predictor: a finite point for the
+    # linearisation, so no NaN reaches the others' gradients (its outputs are masked)
+    Z = _select(status == Status.SUCCESS, c["Z"], Z_alt)
+    matrix = Matrix(newton=c["newton"] & ~matrix.first, first=false, inverse=inverse)
+    return Z, matrix, c["iterations"], status, jnp.broadcast_to(c["trips"], (B,))
 
 
 def _fold(x, batched, axis_size):
@@ -351,7 +428,7 @@ def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, max_iterations):
         skip: do not iterate (an earlier element failed).
         max_iterations: cap on iterations; static.
     Returns:
-        ``(Z, matrix, iterations, status, trips)``: ``trips`` counts the iterations the batch
+        ``(Z, matrix, iterations, status, trips)``: ``trips`` counts the updates the batch
         ran (its slowest member's), ``iterations`` this member's.
     """
     iterate = _batched(fn, max_iterations)

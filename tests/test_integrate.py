@@ -48,15 +48,21 @@ def test_args_reach_the_hamiltonian():
     np.testing.assert_allclose(c.q, b.q, atol=1e-15)
 
 
-def test_newton_takes_few_iterations_with_the_extrapolating_predictor():
-    """Linear scene: 1 solve + 1 confirming iteration. Kepler (h omega ~ 0.05) and the quartic
-    scene of [GBS, Fig. 4.6] (h omega ~ 1 at h = 0.01, omega^2 = V''(2) / m = 11000, where no
-    polynomial predictor is accurate): the simplified Newton iteration runs to the round-off
-    floor, measured 4.2 and 5.8 iterations per element (the last one confirms the floor)."""
+def test_iterations_per_element_with_the_extrapolating_predictor():
+    """The first element of a small system is solved by Newton from the constant state, the
+    next ones by the fixed point from the extrapolating predictor, unless that contracts too
+    slowly. Linear scene (h omega = 0.35): the fixed point contracts at 0.18, so the run
+    switches to Newton, which then takes 1 solve + 1 confirming iteration (measured mean 2.04,
+    max 4 in the first element). Kepler, h = 0.05: measured mean 4.33, max 12 (the fixed
+    point's patience). The quartic scene of [GBS, Fig. 4.6] (h omega ~ 1 at h = 0.01, omega^2
+    = V''(2) / m = 11000, where no polynomial predictor is accurate) with dG(1), whose
+    Jacobian at h = 0 is not I, so that the fixed point cannot contract: Newton, measured
+    mean 5.8, max 8."""
     osc = gj.integrate(H_OSC, Q_OSC, P_OSC, method=gj.CG(1, gj.midpoint()), h=1.0, n_steps=50)
-    assert int(osc.stats["max_newton_iterations"]) == 2
+    assert int(osc.stats["max_newton_iterations"]) <= 4
+    assert int(osc.stats["num_newton_iterations"]) / 50 <= 2.1
     kepler = gj.integrate(H_KEP, Q_KEP, P_KEP, method=CG2, h=0.05, n_steps=200)
-    assert int(kepler.stats["max_newton_iterations"]) <= 7
+    assert int(kepler.stats["max_newton_iterations"]) <= 12
     assert int(kepler.stats["num_newton_iterations"]) / 200 <= 4.5
     H_quartic, _, q0, p0 = helpers.quartic()
     quartic = gj.integrate(H_quartic, q0, p0, method=gj.DG(1, gj.gauss_legendre(2)), h=0.01, n_steps=200)
