@@ -63,6 +63,8 @@ class CG:
         quadrature: rule on [0, 1]; its arrays may be traced, vmapped and differentiated.
     """
 
+    fixed_point = True  # R = C - h (...): dR/dC = I at h = 0, so Z <- Z - R(Z) contracts for small h
+
     k: int = dataclasses.field(metadata=dict(static=True))
     quadrature: QuadratureRule
 
@@ -115,6 +117,12 @@ class DG:
     def __post_init__(self):
         check_degree("DG", self.k, 0)
         check_rule("DG", self.quadrature)
+
+    @property
+    def fixed_point(self):
+        """dG(0) only: for k >= 1, dR/da at h = 0 holds the derivative and jump terms, not I,
+        and the fixed-point iteration Z <- Z - R(Z) cannot contract."""
+        return self.k == 0
 
     def initial_guess(self, q0, p0, previous=None):
         """Zero (the constant state), or the previous element's polynomial continued."""

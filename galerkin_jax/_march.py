@@ -47,7 +47,7 @@ def solve_element(method, H, q, p, h, args, max_iterations):
     fn, params = element_residual(H), (method, q, p, h, args)
     guess = method.initial_guess(q, p)
     scale = jnp.maximum(jnp.max(jnp.abs(q)), jnp.max(jnp.abs(p)))
-    matrix = initial_matrix(guess)
+    matrix = initial_matrix(guess, method.fixed_point)
     Z, _, iterations, status, _ = solve(fn, params, guess, guess, matrix, scale, jnp.asarray(False), max_iterations)
     dq, dp = method.increment(bind_args(H, args), q, p, Z, h)
     return q + dq, p + dp, Z, iterations, status
@@ -107,7 +107,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, c
     # the state a failed run carries from then on (no NaN enters the linearisation, nor,
     # under vmap, the others' gradients), and whose scale starts a run
     start = dict(z=z0, z_prev=z0, Z_prev=guess, scale=jnp.max(jnp.abs(z0)))
-    carry = dict(start, comp=jnp.zeros_like(z0), misses=(jnp.zeros_like(guess),) * 2, matrix=initial_matrix(guess),
+    carry = dict(start, comp=jnp.zeros_like(z0), misses=(jnp.zeros_like(guess),) * 2, matrix=initial_matrix(guess, method.fixed_point),
                  counters=counters0, done=jnp.zeros((), jnp.int32), estimate=jnp.zeros((), z0.dtype), acc=acc0)
     total = n_blocks * block_size
 

@@ -21,6 +21,8 @@ class _Increment:
     """The members shared by schemes whose unknown is the increment ``dz = z1 - z0``, shape
     ``(1, 2d)``; their polynomial is the straight line z0 + alpha dz."""
 
+    fixed_point = True  # R = dz - h (...): dR/dz = I at h = 0
+
     def initial_guess(self, q0, p0, previous=None):
         if previous is None:
             return jnp.zeros((1, 2 * q0.shape[0]), q0.dtype)

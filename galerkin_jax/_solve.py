@@ -11,15 +11,19 @@ Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
 * The fixed-point phase: ``K = I``, the fixed-point iteration of ``Z = h Phi(Z)`` (every method
   whose residual has Jacobian I at h = 0), in blocks of ``FIXED_POINT_BLOCK`` updates checked
   once at the block's end. Its loop carries no matrix, so a run that never needs Newton never
-  pays for one. A member leaves it for good when it contracts too slowly or takes too many
-  iterations in one element (dG's residual, whose Jacobian at h = 0 is not I, never
-  contracts: it moves to Newton at once).
+  pays for one. A member leaves it when it contracts at a rate above 1/2 or takes too many
+  iterations in one element (the predictor's error and the rate together decide the cost).
+  A method whose residual's Jacobian at h = 0 is not I (dG(k >= 1)) has no fixed point and
+  solves every element by Newton.
 * The Newton phase: ``K`` the inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and
   kept across elements (the simplified Newton method, as in Hairer and Wanner's Radau5), one
   checked update at a time. A member refreshes its matrix when it contracts too slowly or an
   update goes astray (the update is rejected), and halves a full Newton step that does not
-  lower the residual. Small systems solve a run's first element by Newton (the predictor has
-  no history yet) and return to the fixed point after it.
+  lower the residual. A small system that switched stays with Newton (its Newton update costs
+  two to three fixed-point ones); a large one, whose update costs a product with an n x n
+  matrix and whose refresh n derivatives and an inverse, for ``NEWTON_STRETCH`` elements,
+  then tries the fixed point again (one hard element does not cost it the run). Small systems
+  solve a run's first element by Newton: the predictor has no history yet.
 
 The loop's cost is mostly per check, not per update: the decisions, the sizes and the loop's
 trip are each a kernel that XLA's CPU runtime launches on its own. A block of two fixed-point
@@ -78,16 +82,13 @@ def status_message(status):
 
 
 DENSE_LIMIT = 256  # unknowns per element up to which a dense Newton matrix is kept
-SMALL = 32  # unknowns per element up to which a Newton refresh is cheap
-# Contraction rates above which a member switches from the fixed-point iteration to Newton,
-# and refreshes its Newton matrix, for small systems (n <= SMALL) and large ones. A small
-# system's Newton update costs two to three fixed-point ones (measured on Kepler): at a rate
-# of 0.15 the fixed point needs three times the iterations of simplified Newton. A large one's
-# costs a product with an n x n matrix and, per refresh, n residual derivatives and an inverse.
-THETA_FIXED_POINT = (0.15, 0.5)
-THETA_NEWTON = (0.03, 0.25)
+SMALL = 32  # unknowns per element up to which a Newton update and refresh are cheap
+THETA_FIXED_POINT = 0.5  # fixed-point rate above which a member switches to Newton
+THETA_NEWTON = (0.03, 0.25)  # Newton rate above which a member refreshes (small, large systems)
 PATIENCE = 8  # iterations in one element after which a Newton member refreshes anyway
 PATIENCE_FIXED_POINT = (12, 24)  # ... and a fixed-point member switches to Newton (small, large)
+NEWTON_STRETCH = 16  # elements a large system that switched to Newton stays with it
+ALWAYS = 2**30  # elements of Newton: for good
 FIXED_POINT_BLOCK = 2  # fixed-point updates per check (module docstring)
 
 
@@ -96,24 +97,27 @@ class Matrix:
     """The iteration matrix ``K`` of each member, kept across elements.
 
     Attributes:
-        newton: bool, shape ``(B,)`` (or ``()`` for one run): K is a Newton matrix, not I.
-        first: bool, like ``newton``: the run's first element. A small system solves it by
-            Newton, since the fixed point from the constant state, with no history for the
-            predictor, is slow; the next element starts with the fixed point again.
+        newton: int32, shape ``(B,)`` (or ``()`` for one run): the elements, this one
+            included, that the member still solves by Newton; 0 for the fixed point (module
+            docstring).
+        pending: bool, like ``newton``: ``inverse`` is yet to be computed.
         inverse: ``(B, n, n)`` inverse Jacobians, or None when n > ``DENSE_LIMIT`` (then the
             iteration is the fixed-point one only).
     """
 
     newton: jax.Array
-    first: jax.Array
+    pending: jax.Array
     inverse: object
 
 
-def initial_matrix(Z):
-    """``Matrix`` for the first element of one run."""
+def initial_matrix(Z, fixed_point=True):
+    """``Matrix`` for the first element of one run; ``fixed_point`` False: a method whose
+    fixed-point iteration cannot contract solves every element by Newton."""
     n = Z.size
-    false, true = jnp.asarray(False), jnp.asarray(True)
-    return Matrix(newton=false, first=true, inverse=None if n > DENSE_LIMIT else jnp.zeros((n, n), Z.dtype))
+    dense = n <= DENSE_LIMIT
+    newton = 1 if dense and n <= SMALL else 0
+    return Matrix(newton=jnp.asarray(newton if fixed_point else ALWAYS, jnp.int32), pending=jnp.asarray(True),
+                  inverse=jnp.zeros((n, n), Z.dtype) if dense else None)
 
 
 def _matvec(K, r):
@@ -182,8 +186,18 @@ def _unpack(c):
     return dict(values, **{k: c[group][i] for group, names in _GROUPS.items() for i, k in enumerate(names)})
 
 
-def _flag(c, name):
-    return c["flags"][_GROUPS["flags"].index(name)] if "flags" in c else c[name]
+def _get(c, name):
+    """A member scalar of the carry, packed (one run) or not."""
+    for group, names in _GROUPS.items():
+        if group in c and name in names:
+            return c[group][names.index(name)]
+    return c[name]
+
+
+def _live(problem, c):
+    """Members still iterating: active and under their own iteration cap (in a batch the
+    phases run one after the other, so the batch's count of updates is no member's)."""
+    return _get(c, "active") & (_get(c, "iterations") < problem.max_iterations)
 
 
 def _update(r, inverse, damping):
@@ -203,7 +217,7 @@ def _block(problem, c, inverse, size):
     eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
     Z0, r0, newton, fresh, damping = c["Z"], c["r"], c["newton"], c["fresh"], c["damping"]
     mode = newton if inverse is not None else ~newton
-    moving = c["active"] & ~c["asked"] & mode  # members that asked wait for their matrix
+    moving = _live(problem, c) & ~c["asked"] & mode  # members that asked wait for their matrix
     Z, r, steps = Z0, r0, []
     for _ in range(size):
         steps.append(_update(r, inverse, damping))
@@ -242,7 +256,7 @@ def _block(problem, c, inverse, size):
         (take, going, failed, backtrack, rejected, done & accept_here))
     iterations = c["iterations"] + size * moving
     large = n > SMALL
-    slow = theta > jnp.where(newton, THETA_NEWTON[large], THETA_FIXED_POINT[large])
+    slow = theta > jnp.where(newton, THETA_NEWTON[large], THETA_FIXED_POINT)
     patience = iterations >= jnp.where(newton, PATIENCE, PATIENCE_FIXED_POINT[large])
     unsure = small & ~bad & stale  # a small update but a large residual: K is off
     asked = c["asked"] | (going & ~failed & ~backtrack & (rejected | ((slow | patience) & ~noisy) | unsure) & problem.dense)
@@ -267,8 +281,7 @@ def _fixed_point(problem, c):
     until they converge, fail or ask for a Newton matrix. Its loop carries no matrix."""
 
     def going(c):
-        return (c["trips"] < problem.max_iterations) & jnp.any(
-            _flag(c, "active") & ~_flag(c, "asked") & ~_flag(c, "newton"))
+        return jnp.any(_live(problem, c) & ~_get(c, "asked") & ~_get(c, "newton"))
 
     return jax.lax.while_loop(going, lambda c: _block(problem, c, None, FIXED_POINT_BLOCK), c)
 
@@ -308,24 +321,22 @@ def _newton(problem, c, inverse):
     converges, fails or asks again. A batch serves its askers every iteration, so that nobody
     waits for the others' rounds to end.
     """
-    within = lambda c: c["trips"] < problem.max_iterations
+    moving = lambda s: jnp.any(_live(problem, s[0]) & (_get(s[0], "newton") | _get(s[0], "asked")))
     if c["Z"].shape[0] > 1:
         def step(state):
             c, inverse = _refresh(problem, *state)
             return _block(problem, c, inverse, 1), inverse
 
-        moving = lambda c: c["active"] & (c["newton"] | c["asked"])
-        return jax.lax.while_loop(lambda s: within(s[0]) & jnp.any(moving(s[0])), step, (c, inverse))
+        return jax.lax.while_loop(moving, step, (c, inverse))
 
     def round(state):
         c, inverse = state
         fresh = lambda c, _: (_pack(_served(_unpack(c), jnp.ones(1, bool))),
                               jnp.linalg.inv(block_jacobians(problem.residual, _unpack(c)["Z"])))
-        c, inverse = jax.lax.cond(_flag(c, "asked")[0], fresh, lambda *s: s, c, inverse)
-        going = lambda c: within(c) & jnp.any(_flag(c, "active") & ~_flag(c, "asked"))
+        c, inverse = jax.lax.cond(_get(c, "asked")[0], fresh, lambda *s: s, c, inverse)
+        going = lambda c: jnp.any(_live(problem, c) & ~_get(c, "asked"))
         return jax.lax.while_loop(going, lambda c: _block(problem, c, inverse, 1), c), inverse
 
-    moving = lambda s: within(s[0]) & jnp.any(_flag(s[0], "active") & (_flag(s[0], "newton") | _flag(s[0], "asked")))
     return jax.lax.while_loop(moving, round, (c, inverse))
 
 
@@ -357,8 +368,9 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
     problem = _Problem(fn, params, scale, max_iterations, matrix.inverse is not None)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
     nan, false = jnp.full(B, jnp.nan, dtype), jnp.zeros(B, bool)
-    asked = matrix.first & ok & ~skip & problem.dense & (n <= SMALL)
-    c = dict(trips=jnp.int32(0), Z=Z, r=r, newton=matrix.newton, fresh=false, asked=asked, damping=jnp.ones(B, dtype),
+    newton = matrix.newton > 0
+    asked = newton & matrix.pending & ok & ~skip
+    c = dict(trips=jnp.int32(0), Z=Z, r=r, newton=newton, fresh=false, asked=asked, damping=jnp.ones(B, dtype),
              step=nan, rate=nan, r_size=r_size, active=ok & ~skip, iterations=jnp.zeros(B, jnp.int32),
              status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
     c = _fixed_point(problem, _pack(c))
@@ -370,7 +382,10 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
     # a failed member's unknowns become its constant predictor: a finite point for the
     # linearisation, so no NaN reaches the others' gradients (its outputs are masked)
     Z = _select(status == Status.SUCCESS, c["Z"], Z_alt)
-    matrix = Matrix(newton=c["newton"] & ~matrix.first, first=false, inverse=inverse)
+    # elements of Newton left: one fewer for a member in Newton mode, a stretch for one that switched
+    switched = NEWTON_STRETCH if n > SMALL else ALWAYS
+    left = jnp.where(newton, matrix.newton, jnp.where(c["newton"], switched, 0)) - c["newton"]
+    matrix = Matrix(newton=left.astype(jnp.int32), pending=matrix.pending & ~c["fresh"], inverse=inverse)
     return Z, matrix, c["iterations"], status, jnp.broadcast_to(c["trips"], (B,))
 
 

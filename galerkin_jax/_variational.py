@@ -51,6 +51,8 @@ class GalerkinVI:
         quadrature: rule on [0, 1]; may be traced, vmapped and differentiated.
     """
 
+    fixed_point = True  # dR/dZ = I at h = 0
+
     s: int = dataclasses.field(metadata=dict(static=True))
     quadrature: QuadratureRule
 
@@ -118,6 +120,8 @@ class LagrangianVI:
         s: degree of Q, s >= 1. Static.
         quadrature: rule on [0, 1]; may be traced, vmapped and differentiated.
     """
+
+    fixed_point = True  # dR/dv at h = 0 is the mass matrix: I for unit masses, else the rate test moves to Newton
 
     s: int = dataclasses.field(metadata=dict(static=True))
     quadrature: QuadratureRule

@@ -50,20 +50,20 @@ def test_args_reach_the_hamiltonian():
 
 def test_iterations_per_element_with_the_extrapolating_predictor():
     """The first element of a small system is solved by Newton from the constant state, the
-    next ones by the fixed point from the extrapolating predictor, unless that contracts too
-    slowly. Linear scene (h omega = 0.35): the fixed point contracts at 0.18, so the run
-    switches to Newton, which then takes 1 solve + 1 confirming iteration (measured mean 2.04,
-    max 4 in the first element). Kepler, h = 0.05: measured mean 4.33, max 12 (the fixed
-    point's patience). The quartic scene of [GBS, Fig. 4.6] (h omega ~ 1 at h = 0.01, omega^2
+    next ones by the fixed point from the extrapolating predictor, unless that takes more than
+    12 iterations or contracts at a rate above 0.5. Linear scene (h omega = 0.35): the fixed
+    point contracts at 0.18, the second element takes 15 iterations, and the run switches to
+    Newton for good, which then takes 1 solve + 1 confirming iteration (measured mean 2.26,
+    max 15). Kepler, h = 0.05: the fixed point, measured mean 7.23, max 16 (perihelion). The quartic scene of [GBS, Fig. 4.6] (h omega ~ 1 at h = 0.01, omega^2
     = V''(2) / m = 11000, where no polynomial predictor is accurate) with dG(1), whose
     Jacobian at h = 0 is not I, so that the fixed point cannot contract: Newton, measured
     mean 5.8, max 8."""
     osc = gj.integrate(H_OSC, Q_OSC, P_OSC, method=gj.CG(1, gj.midpoint()), h=1.0, n_steps=50)
-    assert int(osc.stats["max_newton_iterations"]) <= 4
-    assert int(osc.stats["num_newton_iterations"]) / 50 <= 2.1
+    assert int(osc.stats["max_newton_iterations"]) <= 16
+    assert int(osc.stats["num_newton_iterations"]) / 50 <= 2.5
     kepler = gj.integrate(H_KEP, Q_KEP, P_KEP, method=CG2, h=0.05, n_steps=200)
-    assert int(kepler.stats["max_newton_iterations"]) <= 12
-    assert int(kepler.stats["num_newton_iterations"]) / 200 <= 4.5
+    assert int(kepler.stats["max_newton_iterations"]) <= 16
+    assert int(kepler.stats["num_newton_iterations"]) / 200 <= 7.5
     H_quartic, _, q0, p0 = helpers.quartic()
     quartic = gj.integrate(H_quartic, q0, p0, method=gj.DG(1, gj.gauss_legendre(2)), h=0.01, n_steps=200)
     assert int(quartic.status) == 0
