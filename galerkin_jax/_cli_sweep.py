@@ -22,7 +22,7 @@ def groups(method_specs):
     return list(grouped.values())
 
 
-def sweep_call(problem, group, hs, states, scales, n_steps, dtype, progress=False):
+def sweep_call(problem, group, hs, states, scales, n_steps, dtype, progress=False, krylov=False):
     """A function of no arguments: one ``gj.sweep`` over ``group`` x ``hs`` x ``states``.
 
     The reference for the final error is the scene's exact solution at ``n_steps h`` for the
@@ -44,7 +44,7 @@ def sweep_call(problem, group, hs, states, scales, n_steps, dtype, progress=Fals
                  for _, h, scale in itertools.product(group, hs, scales)]
         reference = tuple(np.stack([np.asarray(x[i], dtype=float) for x in exact]).astype(dtype) for i in (0, 1))
     return lambda: gj.sweep(fn, configs, n_steps=n_steps, invariants=invariants, reference=reference,
-                            progress=progress)
+                            progress=progress, krylov=krylov)
 
 
 def rows(group, hs, scales, result, n_steps):

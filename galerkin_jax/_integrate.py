@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _basis, _checks
-from ._march import bind_args, input_status, march, nan_if_failed, solve_element
+from ._march import bind_args, input_status, march, nan_if_failed, solve_element, solver_options
 from ._pytree import pytree_dataclass
 
 DEFAULT_MAX_NEWTON_ITERATIONS = 32
@@ -101,7 +101,7 @@ def prepare(H, q0, p0, method, h, args):
     return q0, p0, jnp.asarray(h, q0.dtype)
 
 
-def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS):
+def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS, krylov=False):
     """One time element: ``(q, p) -> (q1, p1)``.
 
     A failed solve returns NaN states (never a plausible one); ``integrate(..., n_steps=1)``
@@ -117,13 +117,13 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEW
     """
     q, p, h = prepare(H, q, p, method, h, args)
     _checks.check_iterations(max_newton_iterations)
-    q1, p1, status = _step(H, q, p, method, h, args, max_newton_iterations)
+    q1, p1, status = _step(H, q, p, method, h, args, solver_options(method, max_newton_iterations, bool(krylov)))
     return nan_if_failed(q1, status), nan_if_failed(p1, status)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
-def _step(H, q, p, method, h, args, max_iterations):
-    q1, p1, _, _, status = solve_element(method, H, q, p, h, args, max_iterations)
+def _step(H, q, p, method, h, args, options):
+    q1, p1, _, _, status = solve_element(method, H, q, p, h, args, options)
     return q1, p1, jnp.maximum(status, input_status(q, p, h))
 
 
@@ -138,6 +138,7 @@ def integrate(
     args=None,
     save_every=1,
     max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
+    krylov=False,
     checkpoint=False,
     dense=False,
     progress=False,
@@ -157,6 +158,11 @@ def integrate(
         args: pytree passed to ``H`` as third argument; may be traced.
         save_every: store every ``save_every``-th state. Static.
         max_newton_iterations: iteration cap per element. Static.
+        krylov: solve by Newton-Krylov (GMRES on Hessian-vector products) where the fixed-point
+            iteration is too slow in a system of more than 256 unknowns (k * 2d), which without
+            it has the fixed point only: stiff large systems, h omega >~ 1, need it. It
+            compiles about a second longer. dG(k >= 1) has no fixed point and always uses it.
+            Static.
         checkpoint: rematerialise each saved block in reverse mode: a gradient then stores
             one state per save instead of every element's residuals. Static.
         dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps). Static.
@@ -170,7 +176,8 @@ def integrate(
     q0, p0, h = prepare(H, q0, p0, method, h, args)
     _checks.check_counts(n_steps, save_every)
     _checks.check_iterations(max_newton_iterations)
-    return _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_newton_iterations, checkpoint, bool(dense),
+    options = solver_options(method, max_newton_iterations, bool(krylov))
+    return _integrate(H, q0, p0, method, h, args, n_steps, save_every, options, checkpoint, bool(dense),
                       bool(progress), bool(error_estimate))
 
 
@@ -196,10 +203,10 @@ def solution(final, saved, kept, q0, p0, h, block_size):
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9, 10, 11, 12))
-def _integrate(H, q0, p0, method, h, args, n_steps, save_every, max_iterations, checkpoint, dense, progress, estimate):
+def _integrate(H, q0, p0, method, h, args, n_steps, save_every, options, checkpoint, dense, progress, estimate):
     final, saved, kept = march(
         method, H, q0, p0, h, args, n_blocks=n_steps // save_every, block_size=save_every,
-        max_iterations=max_iterations, checkpoint=checkpoint, dense=dense, progress=progress, estimate=estimate,
+        options=options, checkpoint=checkpoint, dense=dense, progress=progress, estimate=estimate,
     )
     return solution(final, saved, kept, q0, p0, h, save_every)
 
@@ -218,7 +225,7 @@ def amplification_matrix(H, q, p, *, method, h, args=None):
     d = q.shape[0]
 
     def one_step(z):
-        q1, p1, status = _step(H, z[:d], z[d:], method, h, args, DEFAULT_MAX_NEWTON_ITERATIONS)
+        q1, p1, status = _step(H, z[:d], z[d:], method, h, args, solver_options(method, DEFAULT_MAX_NEWTON_ITERATIONS, False))
         return jnp.concatenate([q1, p1]), status
 
     A, status = jax.jacfwd(one_step, has_aux=True)(jnp.concatenate([q, p]))

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _progress
-from ._solve import Status, initial_matrix, solve
+from ._solve import Options, Status, initial_matrix, solve
 
 
 def bind_args(H, args):
@@ -42,13 +42,19 @@ def element_residual(H):
     return fn
 
 
-def solve_element(method, H, q, p, h, args, max_iterations):
+def solver_options(method, max_iterations, krylov):
+    """The root finder's ``Options``: a method without a fixed point (dG(k >= 1)) needs Newton
+    at every size, so Newton-Krylov where no dense matrix is kept."""
+    return Options(max_iterations, krylov or not method.fixed_point)
+
+
+def solve_element(method, H, q, p, h, args, options):
     """One element from the constant predictor, without history: ``(q1, p1, Z, iterations, status)``."""
     fn, params = element_residual(H), (method, q, p, h, args)
     guess = method.initial_guess(q, p)
     scale = jnp.maximum(jnp.max(jnp.abs(q)), jnp.max(jnp.abs(p)))
     matrix = initial_matrix(guess, method.fixed_point)
-    Z, _, iterations, status, _ = solve(fn, params, guess, guess, matrix, scale, jnp.asarray(False), max_iterations)
+    Z, _, iterations, status, _ = solve(fn, params, guess, guess, matrix, scale, jnp.asarray(False), options)
     dq, dp = method.increment(bind_args(H, args), q, p, Z, h)
     return q + dq, p + dp, Z, iterations, status
 
@@ -80,7 +86,7 @@ COUNTERS = ("status", "total", "most", "trips", "count")
 _AT = {name: i for i, name in enumerate(COUNTERS)}
 
 
-def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, checkpoint=False, dense=False,
+def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoint=False, dense=False,
           observe=None, acc0=None, progress=False, estimate=True):
     """Chain ``n_blocks * block_size`` elements of one run.
 
@@ -117,7 +123,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, max_iterations, c
         previous = (*split(c["z_prev"]), c["Z_prev"])
         Z_pred, continued, constant = predictor(method, q, p, previous, c["misses"], counters[_AT["count"]])
         Z, matrix, iterations, status, trips = solve(
-            fn, (method, q, p, h, args), Z_pred, constant, c["matrix"], c["scale"], failed, max_iterations)
+            fn, (method, q, p, h, args), Z_pred, constant, c["matrix"], c["scale"], failed, options)
         z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
         scale = jnp.max(jnp.abs(z1))  # the next element's scale; propagates NaN and inf
         # an estimate, not a function to differentiate (and no 0 * inf from a failed run's)

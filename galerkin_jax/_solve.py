@@ -19,11 +19,14 @@ Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
   kept across elements (the simplified Newton method, as in Hairer and Wanner's Radau5), one
   checked update at a time. A member refreshes its matrix when it contracts too slowly or an
   update goes astray (the update is rejected), and halves a full Newton step that does not
-  lower the residual. A small system that switched stays with Newton (its Newton update costs
+  lower the residual. A system too large for a dense matrix (more than ``DENSE_LIMIT``
+  unknowns) has Newton only with ``Options.krylov``: every update a fresh Newton direction,
+  by GMRES on Jacobian-vector products (Newton-Krylov; its cost follows the Hessian's
+  sparsity, not n^3). A small system that switched stays with Newton (its Newton update costs
   two to three fixed-point ones); a large one, whose update costs a product with an n x n
-  matrix and whose refresh n derivatives and an inverse, for ``NEWTON_STRETCH`` elements,
-  then tries the fixed point again (one hard element does not cost it the run). Small systems
-  solve a run's first element by Newton: the predictor has no history yet.
+  matrix or a Krylov solve, for ``NEWTON_STRETCH`` elements, then tries the fixed point again
+  (one hard element does not cost it the run). Small systems solve a run's first element by
+  Newton: the predictor has no history yet.
 
 The loop's cost is mostly per check, not per update: the decisions, the sizes and the loop's
 trip are each a kernel that XLA's CPU runtime launches on its own. A block of two fixed-point
@@ -69,7 +72,9 @@ MESSAGES = {
     ),
     Status.NEWTON_MAX_ITERATIONS: (
         "An implicit solve did not converge within max_newton_iterations; reduce h or raise the "
-        "cap. The element equations may have no real solution for this h."
+        "cap. The element equations may have no real solution for this h. A system of more "
+        "than 256 unknowns (k * 2d) has only the fixed-point iteration unless krylov=True, "
+        "which a stiff one (h omega >~ 1) needs."
     ),
     Status.NONFINITE: "NaN or inf in the element unknowns; check H, args and the initial state.",
     Status.INVALID_INPUT: "Invalid traced input: h <= 0 or a non-finite initial state.",
@@ -90,6 +95,24 @@ PATIENCE_FIXED_POINT = (12, 24)  # ... and a fixed-point member switches to Newt
 NEWTON_STRETCH = 16  # elements a large system that switched to Newton stays with it
 ALWAYS = 2**30  # elements of Newton: for good
 FIXED_POINT_BLOCK = 2  # fixed-point updates per check (module docstring)
+KRYLOV_TOLERANCE = 1e-7  # GMRES's relative residual for a Newton-Krylov direction: each update
+KRYLOV_RESTART = 20  # leaves 1e-7 of the error, so updates shrink to the floor in 2 or 3;
+KRYLOV_RESTARTS = 10  # at most 200 Jacobian-vector products per direction
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """The root finder's static options.
+
+    Attributes:
+        max_iterations: iterations per element after which a member fails.
+        krylov: Newton by GMRES on Jacobian-vector products (``_Problem.newton_krylov``) for
+            systems of more than ``DENSE_LIMIT`` unknowns, which otherwise have the fixed point
+            only. Stiff large systems (h omega >~ 1) need it; it compiles about a second longer.
+    """
+
+    max_iterations: int
+    krylov: bool = False
 
 
 @pytree_dataclass
@@ -158,10 +181,23 @@ class _Problem:
     params: object  # leading axis B
     scale: jax.Array  # (B,): the size of the state the unknowns are increments of
     max_iterations: int
-    dense: bool  # a Newton matrix can be had
+    newton: bool  # a Newton phase is there to ask for
 
     def residual(self, Z):
         return jax.vmap(self.fn)(Z, self.params)
+
+    def newton_krylov(self, Z, r):
+        """``dR/dZ(Z)^{-1} r`` per member, by restarted GMRES on Jacobian-vector products: the
+        Newton direction of a system too large for a dense matrix, at the cost of a few
+        residual linearisations per Krylov iteration (H's Hessian-vector products), however
+        sparse H's Hessian. Each member solves alone (vmap), as it would in a run of its own."""
+
+        def direction(Z, r, params):
+            _, jvp = jax.linearize(lambda Z: self.fn(Z, params), Z)
+            return jax.scipy.sparse.linalg.gmres(jvp, r, tol=KRYLOV_TOLERANCE, restart=KRYLOV_RESTART,
+                                                 maxiter=KRYLOV_RESTARTS)[0]
+
+        return jax.vmap(direction)(Z, r, self.params)
 
 
 # The scalars of each member travel as three stacked arrays for one run: XLA then computes
@@ -200,11 +236,16 @@ def _live(problem, c):
     return _get(c, "active") & (_get(c, "iterations") < problem.max_iterations)
 
 
-def _update(r, inverse, damping):
-    """``damping K r`` per member, flat: K the Newton inverse, or I without one."""
+KRYLOV = "newton-krylov"  # the Newton phase's K where no dense matrix is kept
+
+
+def _update(problem, K, Z, r, damping):
+    """``damping K r`` per member, flat: K = I (``None``), a dense inverse, or ``KRYLOV``."""
+    if K is KRYLOV:
+        r = problem.newton_krylov(Z, r)
     r = r.reshape(r.shape[0], -1)
-    if inverse is not None:
-        r = _matvec(inverse, r) if r.shape[1] <= SMALL else jnp.einsum("bij,bj->bi", inverse, r)
+    if K is not None and K is not KRYLOV:
+        r = _matvec(K, r) if r.shape[1] <= SMALL else jnp.einsum("bij,bj->bi", K, r)
     return damping[:, None] * r
 
 
@@ -220,7 +261,7 @@ def _block(problem, c, inverse, size):
     moving = _live(problem, c) & ~c["asked"] & mode  # members that asked wait for their matrix
     Z, r, steps = Z0, r0, []
     for _ in range(size):
-        steps.append(_update(r, inverse, damping))
+        steps.append(_update(problem, inverse, Z, r, damping))
         Z = Z - steps[-1].reshape(Z.shape)
         r = problem.residual(Z)
     measured = sizes(*steps[-2:], Z, r)
@@ -259,12 +300,13 @@ def _block(problem, c, inverse, size):
     slow = theta > jnp.where(newton, THETA_NEWTON[large], THETA_FIXED_POINT)
     patience = iterations >= jnp.where(newton, PATIENCE, PATIENCE_FIXED_POINT[large])
     unsure = small & ~bad & stale  # a small update but a large residual: K is off
-    asked = c["asked"] | (going & ~failed & ~backtrack & (rejected | ((slow | patience) & ~noisy) | unsure) & problem.dense)
+    asked = c["asked"] | (going & ~failed & ~backtrack & (rejected | ((slow | patience) & ~noisy) | unsure) & problem.newton)
     restart = asked | backtrack
     # An accepted iterate gets one more update from its residual, already known: a product, no
     # residual. It leaves theta times less of the iteration error, which is systematic (it
-    # follows the predictor's smooth miss) and would add up over the elements.
-    polished = Z - _update(r, inverse, damping).reshape(Z.shape)
+    # follows the predictor's smooth miss) and would add up over the elements. (Not with
+    # Newton-Krylov: a Krylov solve is no product, and exact Newton leaves no such error.)
+    polished = Z if inverse is KRYLOV else Z - _update(problem, inverse, Z, r, damping).reshape(Z.shape)
     return _pack(dict(
         c, trips=c["trips"] + size, Z=_select(accepted, polished, _select(take, Z, Z0)), r=_select(take, r, r0),
         asked=asked, active=(c["active"] & ~moving) | (going & ~failed),
@@ -340,6 +382,15 @@ def _newton(problem, c, inverse):
     return jax.lax.while_loop(moving, round, (c, inverse))
 
 
+def _newton_krylov(problem, c):
+    """The Newton phase of a system without a dense matrix: every update a fresh Newton
+    direction, by GMRES (``_Problem.newton_krylov``). There is no matrix to wait for: every
+    member that asks is served at once."""
+    serve = lambda c: _pack(_served(_unpack(c), _get(c, "asked")))
+    moving = lambda c: jnp.any(_live(problem, c) & (_get(c, "newton") | _get(c, "asked")))
+    return jax.lax.while_loop(moving, lambda c: _block(problem, serve(c), KRYLOV, 1), serve(c))
+
+
 def _start(problem, Z_pred, Z_alt, skip):
     """The first iterate and its residual: ``Z_pred``, or the constant ``Z_alt`` where that has
     the smaller residual and ``Z_pred``'s residual is not small against ``Z_pred`` (a continued
@@ -359,13 +410,14 @@ def _start(problem, Z_pred, Z_alt, skip):
     return Z, r, r_size, jnp.isfinite(r_size)
 
 
-def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
+def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     """The iteration for a batch (every argument has a leading axis B); see the module docstring.
 
     Returns ``(Z, matrix, iterations, status, trips)``; ``trips`` counts the batch's updates.
     """
     B, n, dtype = Z_pred.shape[0], Z_pred[0].size, Z_pred.dtype
-    problem = _Problem(fn, params, scale, max_iterations, matrix.inverse is not None)
+    krylov = matrix.inverse is None and options.krylov
+    problem = _Problem(fn, params, scale, options.max_iterations, matrix.inverse is not None or krylov)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
     nan, false = jnp.full(B, jnp.nan, dtype), jnp.zeros(B, bool)
     newton = matrix.newton > 0
@@ -377,6 +429,8 @@ def _iterate(fn, max_iterations, params, Z_pred, Z_alt, matrix, scale, skip):
     inverse = matrix.inverse
     if inverse is not None:
         c, inverse = _newton(problem, c, inverse)
+    elif krylov:
+        c = _newton_krylov(problem, c)
     c = _unpack(c)
     status = jnp.where(c["active"], Status.NEWTON_MAX_ITERATIONS, c["status"]).astype(jnp.int32)
     # a failed member's unknowns become its constant predictor: a finite point for the
@@ -396,10 +450,10 @@ def _fold(x, batched, axis_size):
     return x.reshape((-1,) + x.shape[2:])
 
 
-def _batched(fn, max_iterations):
+def _batched(fn, options):
     @jax.custom_batching.custom_vmap
     def iterate(*args):
-        return _iterate(fn, max_iterations, *args)
+        return _iterate(fn, options, *args)
 
     @iterate.def_vmap
     def rule(axis_size, in_batched, *args):
@@ -431,7 +485,7 @@ def _implicit_jvp(fn, primals, tangents):
     return Z, jnp.where(ok, dZ, 0.0).reshape(Z.shape)
 
 
-def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, max_iterations):
+def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, options):
     """The root of ``fn(Z, params) = 0`` for one run (vmappable: vmap axes join the batch).
 
     Args:
@@ -441,12 +495,12 @@ def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, max_iterations):
         matrix: the ``Matrix`` carried from the previous element.
         scale: size of the state the unknowns are increments of.
         skip: do not iterate (an earlier element failed).
-        max_iterations: cap on iterations; static.
+        options: ``Options``; static.
     Returns:
         ``(Z, matrix, iterations, status, trips)``: ``trips`` counts the updates the batch
         ran (its slowest member's), ``iterations`` this member's.
     """
-    iterate = _batched(fn, max_iterations)
+    iterate = _batched(fn, options)
     args = jax.lax.stop_gradient((params, Z_pred, Z_alt, matrix, scale, skip))
     expanded = jax.tree.map(lambda x: jnp.asarray(x)[None], args)
     Z, matrix, iterations, status, trips = jax.tree.map(lambda x: x[0], iterate(*expanded))

@@ -18,7 +18,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import _checks
 from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, solution
-from ._march import bind_args, march, nan_if_failed
+from ._march import bind_args, march, nan_if_failed, solver_options
 from ._pytree import pytree_dataclass
 
 
@@ -87,14 +87,14 @@ def _block_size(n_steps, save_every, checkpoint):
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5, 6, 7))
-def _run(H, invariants, n_steps, save_every, max_iterations, checkpoint, progress, estimate, configs, reference):
+def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, estimate, configs, reference):
     invariants = dict(invariants)
     block = _block_size(n_steps, save_every, checkpoint)
 
     def one(method, q0, p0, h, args):
         acc0, observe = _diagnostics(H, invariants, q0, p0, args)
         final, saved, _ = march(method, H, q0, p0, h, args, n_blocks=n_steps // block, block_size=block,
-                                max_iterations=max_iterations, checkpoint=checkpoint, observe=observe, acc0=acc0,
+                                options=options, checkpoint=checkpoint, observe=observe, acc0=acc0,
                                 progress=progress, estimate=estimate)
         return final, (solution(final, saved, None, q0, p0, h, block) if save_every else None)
 
@@ -135,6 +135,7 @@ def sweep(
     reference=None,
     save_every=None,
     max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
+    krylov=False,
     devices=None,
     checkpoint=False,
     progress=False,
@@ -149,6 +150,7 @@ def sweep(
         invariants: ``{name: I(q, p)}`` whose relative change is tracked (e.g. angular momentum).
         reference: ``(q_ref, p_ref)`` of shape ``(B, d)`` for ``final_error``.
         save_every: store a trajectory with this stride (``SweepResult.solution``); default none.
+        krylov: Newton-Krylov for systems of more than 256 unknowns (see ``integrate``). Static.
         devices: shard the batch over these devices (e.g. ``jax.devices()``); results equal
             the unsharded run (up to how XLA compiles the per-device batch size). Several hosts: call ``jax.distributed.initialize()`` first and
             pass ``jax.devices()`` (all global devices).
@@ -168,7 +170,8 @@ def sweep(
     inputs = (configs, reference)
     if devices is not None:
         inputs = _shard(inputs, devices)
-    result = _run(H, tuple(invariants.items()), n_steps, save_every, max_newton_iterations, checkpoint, bool(progress),
+    options = solver_options(configs.method, max_newton_iterations, bool(krylov))
+    result = _run(H, tuple(invariants.items()), n_steps, save_every, options, checkpoint, bool(progress),
                   bool(error_estimate), *inputs)
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)

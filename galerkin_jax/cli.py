@@ -122,6 +122,8 @@ def build_parser():
     scene.add_argument("--float32", action="store_true", help="compute in float32 (default float64)")
     scene.add_argument("--progress", action=argparse.BooleanOptionalAction, default=sys.stderr.isatty(),
                        help="a progress bar while the elements run (default: on when stderr is a terminal)")
+    scene.add_argument("--krylov", action="store_true",
+                       help="Newton-Krylov for systems of more than 256 unknowns (stiff large scenes, h omega >~ 1)")
     common = dict(parents=[scene], formatter_class=raw, epilog=SCENES_AND_METHODS)
     out = dict(metavar="FOLDER", default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
 
@@ -214,7 +216,8 @@ def run_command(options):
     integrate = functools.partial(
         gj.integrate, problem.L if spec.kind == "lvi" else problem.H, problem.q0.astype(_dtype()),
         problem.p0.astype(_dtype()), method=specs.build(spec), h=h, n_steps=n_steps, args=problem.args,
-        save_every=options.save_every, dense=_dense(spec, n_steps, problem.q0.shape[0]), progress=options.progress)
+        save_every=options.save_every, dense=_dense(spec, n_steps, problem.q0.shape[0]), progress=options.progress,
+        krylov=options.krylov)
     solution, compile_s, run_s = timed(integrate)
     energy, invariants = _observe(problem, solution)
     files = _write_run(problem, spec, solution, energy, invariants, h, n_steps, options)
@@ -324,7 +327,7 @@ def sweep_command(options):
     groups = sweeps.groups(method_specs)
     for group in groups:
         result, *seconds = timed(sweeps.sweep_call(problem, group, hs, states, options.q0_scale, n_steps, _dtype(),
-                                                   options.progress))
+                                                   options.progress, options.krylov))
         times += seconds
         rows += sweeps.rows(group, hs, options.q0_scale, result, n_steps)
     rows.sort(key=lambda row: method_specs.index(row["spec"]))

@@ -35,6 +35,18 @@ q0, p0, h, n_steps = [1.0], [0.0], 1.0, 4
 '''
 
 
+# a stiff chain of 50 masses (cG(3): 300 unknowns, h omega = 10): Newton-Krylov only
+STIFF_CHAIN_SCENE = '''
+import jax.numpy as jnp
+import numpy as np
+def H(q, p):
+    strain = jnp.diff(jnp.concatenate([jnp.zeros(1, q.dtype), q, jnp.zeros(1, q.dtype)]))
+    return 0.5 * p @ p + 50.0 * strain @ strain
+q0, p0 = np.sin(np.arange(1, 51) / 8.0), np.zeros(50)
+h, n_steps = 0.5, 4
+'''
+
+
 def galerkin_jax(*argv, cwd):
     """``python -m galerkin_jax ARGV`` in ``cwd``; returns the CompletedProcess."""
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -123,6 +135,14 @@ def test_failed_solve_exits_3_with_the_status_message(tmp_path, capsys):
     assert "the run failed between t = 0 and t = 1" in captured.out
     assert captured.err.startswith("galerkin-jax: error: the solve failed (status 1)")
     assert gj.status_message(gj.Status.NEWTON_MAX_ITERATIONS) in captured.err
+
+
+def test_krylov_solves_a_stiff_chain_that_fails_without_it(tmp_path, capsys):
+    scene = write(tmp_path, "chain.py", STIFF_CHAIN_SCENE)
+    out = ["--out", str(tmp_path / "out"), "--no-progress"]
+    assert cli.main(["run", scene, *out]) == cli.EXIT_FAILED_SOLVE
+    assert "krylov=True" in capsys.readouterr().err
+    assert cli.main(["run", scene, "--krylov", *out]) == 0
 
 
 @pytest.mark.parametrize(

@@ -9,7 +9,7 @@ from scipy.integrate import solve_ivp
 import galerkin_jax as gj
 import helpers
 from galerkin_jax import _basis
-from galerkin_jax._march import solve_element
+from galerkin_jax._march import solve_element, solver_options
 
 KEPLER = helpers.kepler(0.5)
 SCENES = {"kepler": KEPLER, "pendulum": helpers.pendulum(), "non-separable": helpers.non_separable()}
@@ -39,7 +39,7 @@ def test_galerkin_vi_is_symmetric(scene):
     """Phi_{-h}(Phi_h(z)) = z for non-reversible H too (the element equations with -h)."""
     H, q0, p0 = SCENES[scene]
     method = gj.GalerkinVI(2, gj.gauss_legendre(3))
-    element = jax.jit(lambda q, p, h: solve_element(method, H, q, p, h, None, 32))
+    element = jax.jit(lambda q, p, h: solve_element(method, H, q, p, h, None, solver_options(method, 32, False)))
     q1, p1, *_ = element(q0, p0, 0.2)
     q2, p2, _, _, status = element(q1, p1, -0.2)
     assert int(status) == 0
@@ -49,7 +49,7 @@ def test_galerkin_vi_is_symmetric(scene):
 def test_a_non_symmetric_rule_breaks_symmetry_but_not_symplecticity():
     H, q0, p0 = KEPLER
     method = gj.GalerkinVI(1, gj.QuadratureRule([0.3], [1.0]))
-    element = jax.jit(lambda q, p, h: solve_element(method, H, q, p, h, None, 32))
+    element = jax.jit(lambda q, p, h: solve_element(method, H, q, p, h, None, solver_options(method, 32, False)))
     q1, p1, *_ = element(q0, p0, 0.2)
     q2, p2, *_ = element(q1, p1, -0.2)
     assert np.abs(np.concatenate([q2 - q0, p2 - p0])).max() > 1e-4
@@ -89,7 +89,7 @@ def test_element_satisfies_the_weak_form_and_the_cspkr_kernels():
     s, h = 3, 0.25
     rule = gj.gauss_legendre(5)
     method = gj.GalerkinVI(s, rule)
-    q1, p1, Z, _, _ = jax.jit(lambda q, p: solve_element(method, H, q, p, h, None, 32))(q0, p0)
+    q1, p1, Z, _, _ = jax.jit(lambda q, p: solve_element(method, H, q, p, h, None, solver_options(method, 32, False)))(q0, p0)
     c, mu = np.split(np.asarray(Z), 2)
     alpha, w = np.asarray(rule.points), np.asarray(rule.weights)
     Q = lambda t: np.asarray(q0) + np.asarray(_basis.legendre_antiderivatives(jnp.asarray(t), s)) @ c
