@@ -225,7 +225,8 @@ def amplification_matrix(H, q, p, *, method, h, args=None):
     d = q.shape[0]
 
     def one_step(z):
-        q1, p1, status = _step(H, z[:d], z[d:], method, h, args, solver_options(method, DEFAULT_MAX_NEWTON_ITERATIONS, False))
+        options = solver_options(method, DEFAULT_MAX_NEWTON_ITERATIONS, False)
+        q1, p1, status = _step(H, z[:d], z[d:], method, h, args, options)
         return jnp.concatenate([q1, p1]), status
 
     A, status = jax.jacfwd(one_step, has_aux=True)(jnp.concatenate([q, p]))

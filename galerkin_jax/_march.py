@@ -113,8 +113,9 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     # the state a failed run carries from then on (no NaN enters the linearisation, nor,
     # under vmap, the others' gradients), and whose scale starts a run
     start = dict(z=z0, z_prev=z0, Z_prev=guess, scale=jnp.max(jnp.abs(z0)))
-    carry = dict(start, comp=jnp.zeros_like(z0), misses=(jnp.zeros_like(guess),) * 2, matrix=initial_matrix(guess, method.fixed_point),
-                 counters=counters0, done=jnp.zeros((), jnp.int32), estimate=jnp.zeros((), z0.dtype), acc=acc0)
+    carry = dict(start, comp=jnp.zeros_like(z0), misses=(jnp.zeros_like(guess),) * 2,
+                 matrix=initial_matrix(guess, method.fixed_point), counters=counters0, done=jnp.zeros((), jnp.int32),
+                 estimate=jnp.zeros((), z0.dtype), acc=acc0)
     total = n_blocks * block_size
 
     def element(c):
@@ -136,8 +137,9 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         count = counters[_AT["count"]]
         misses = (jnp.where(count >= 1, Z - continued, c["misses"][0]), c["misses"][0])
         acc = c["acc"] if observe is None else observe(c["acc"], *split(now["z"]))
-        counters = jnp.stack([status, counters[_AT["total"]] + iterations, jnp.maximum(counters[_AT["most"]], iterations),
-                              counters[_AT["trips"]] + trips, jnp.minimum(count + 1, 3)])
+        counters = jnp.stack([status, counters[_AT["total"]] + iterations,
+                              jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips,
+                              jnp.minimum(count + 1, 3)])
         new = dict(c, **now, comp=comp, misses=misses, matrix=matrix, counters=counters.astype(jnp.int32),
                    done=c["done"] + 1, estimate=jnp.maximum(c["estimate"], local), acc=acc)
         if progress:

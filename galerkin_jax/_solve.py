@@ -300,7 +300,8 @@ def _block(problem, c, inverse, size):
     slow = theta > jnp.where(newton, THETA_NEWTON[large], THETA_FIXED_POINT)
     patience = iterations >= jnp.where(newton, PATIENCE, PATIENCE_FIXED_POINT[large])
     unsure = small & ~bad & stale  # a small update but a large residual: K is off
-    asked = c["asked"] | (going & ~failed & ~backtrack & (rejected | ((slow | patience) & ~noisy) | unsure) & problem.newton)
+    asks = rejected | ((slow | patience) & ~noisy) | unsure
+    asked = c["asked"] | (going & ~failed & ~backtrack & asks & problem.newton)
     restart = asked | backtrack
     # An accepted iterate gets one more update from its residual, already known: a product, no
     # residual. It leaves theta times less of the iteration error, which is systematic (it
@@ -349,8 +350,8 @@ def _refresh(problem, c, inverse):
         inverse = inverse.at[index].set(jnp.linalg.inv(block_jacobians(sub.residual, take(Z))), mode="drop")
         return inverse, jnp.zeros(B, bool).at[index].set(True, mode="drop")
 
-    inverse, served = jax.lax.cond(jnp.any(c["asked"]), refreshed, lambda Z, inverse, asked: (inverse, jnp.zeros_like(asked)),
-                                   c["Z"], inverse, c["asked"])
+    unchanged = lambda Z, inverse, asked: (inverse, jnp.zeros_like(asked))
+    inverse, served = jax.lax.cond(jnp.any(c["asked"]), refreshed, unchanged, c["Z"], inverse, c["asked"])
     return _served(c, served), inverse
 
 
