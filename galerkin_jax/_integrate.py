@@ -112,6 +112,7 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEW
         q, p: shape ``(d,)``.
         method: e.g. ``CG(k, rule)``, ``DG(k, rule)``.
         h: step size, scalar > 0.
+        max_newton_iterations, krylov: as in ``integrate``.
     Returns:
         ``(q1, p1)``, each shape ``(d,)``.
     """

@@ -91,6 +91,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     """Chain ``n_blocks * block_size`` elements of one run.
 
     Args:
+        options: the root finder's ``Options`` (``solver_options``).
         observe: optional ``(acc, q, p) -> acc`` folded over the states after each element,
             starting from ``acc0`` (sweep diagnostics).
         dense: also return, per element, its start state and polynomial coefficients.

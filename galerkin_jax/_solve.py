@@ -95,9 +95,9 @@ PATIENCE_FIXED_POINT = (12, 24)  # ... and a fixed-point member switches to Newt
 NEWTON_STRETCH = 16  # elements a large system that switched to Newton stays with it
 ALWAYS = 2**30  # elements of Newton: for good
 FIXED_POINT_BLOCK = 2  # fixed-point updates per check (module docstring)
-KRYLOV_TOLERANCE = 1e-7  # GMRES's relative residual for a Newton-Krylov direction: each update
-KRYLOV_RESTART = 20  # leaves 1e-7 of the error, so updates shrink to the floor in 2 or 3;
-KRYLOV_RESTARTS = 10  # at most 200 Jacobian-vector products per direction
+# GMRES for a Newton-Krylov direction: a relative residual of 1e-7 leaves 1e-7 of the error per
+# update, so the updates reach the floor in 2 or 3; restarts of 20, at most 200 products
+KRYLOV_TOLERANCE, KRYLOV_RESTART, KRYLOV_RESTARTS = 1e-7, 20, 10
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,8 +124,8 @@ class Matrix:
             included, that the member still solves by Newton; 0 for the fixed point (module
             docstring).
         pending: bool, like ``newton``: ``inverse`` is yet to be computed.
-        inverse: ``(B, n, n)`` inverse Jacobians, or None when n > ``DENSE_LIMIT`` (then the
-            iteration is the fixed-point one only).
+        inverse: ``(B, n, n)`` inverse Jacobians, or None when n > ``DENSE_LIMIT`` (then Newton
+            is Newton-Krylov, with ``Options.krylov``, or there is none).
     """
 
     newton: jax.Array

@@ -54,10 +54,10 @@ def test_iterations_per_element_with_the_extrapolating_predictor():
     12 iterations or contracts at a rate above 0.5. Linear scene (h omega = 0.35): the fixed
     point contracts at 0.18, the second element takes 15 iterations, and the run switches to
     Newton for good, which then takes 1 solve + 1 confirming iteration (measured mean 2.26,
-    max 15). Kepler, h = 0.05: the fixed point, measured mean 7.23, max 16 (perihelion). The quartic scene of [GBS, Fig. 4.6] (h omega ~ 1 at h = 0.01, omega^2
-    = V''(2) / m = 11000, where no polynomial predictor is accurate) with dG(1), whose
-    Jacobian at h = 0 is not I, so that the fixed point cannot contract: Newton, measured
-    mean 5.8, max 8."""
+    max 15). Kepler, h = 0.05: the fixed point, measured mean 7.23, max 16 (perihelion). The
+    quartic scene of [GBS, Fig. 4.6] (h omega ~ 1 at h = 0.01, omega^2 = V''(2) / m = 11000,
+    where no polynomial predictor is accurate) with dG(1), whose Jacobian at h = 0 is not I,
+    so that the fixed point cannot contract: Newton, measured mean 5.8, max 8."""
     osc = gj.integrate(H_OSC, Q_OSC, P_OSC, method=gj.CG(1, gj.midpoint()), h=1.0, n_steps=50)
     assert int(osc.stats["max_newton_iterations"]) <= 16
     assert int(osc.stats["num_newton_iterations"]) / 50 <= 2.5
