@@ -9,7 +9,7 @@ from . import _basis, _checks
 from ._march import bind_args, input_status, march, nan_if_failed, solve_element, solver_options
 from ._pytree import pytree_dataclass
 
-DEFAULT_MAX_NEWTON_ITERATIONS = 32
+DEFAULT_MAX_NEWTON_ITERATIONS = 48  # the fixed point may take 24 of them before it switches to Newton
 
 
 @pytree_dataclass
@@ -158,12 +158,13 @@ def integrate(
         n_steps: number of elements, a multiple of ``save_every``. Static.
         args: pytree passed to ``H`` as third argument; may be traced.
         save_every: store every ``save_every``-th state. Static.
-        max_newton_iterations: iteration cap per element. Static.
+        max_newton_iterations: iteration cap per element (the fixed-point iteration counts in
+            blocks of two, so an odd cap is rounded up there). Static.
         krylov: solve by Newton-Krylov (GMRES on Hessian-vector products) where the fixed-point
-            iteration is too slow in a system of more than 256 unknowns (k * 2d), which without
-            it has the fixed point only: stiff large systems, h omega >~ 1, need it. It
-            compiles about a second longer. dG(k >= 1) has no fixed point and always uses it.
-            Static.
+            iteration is too slow in a system of more than 256 unknowns per element (k * 2d for
+            cG(k), (k + 1) * 2d for dG(k)), which without it has the fixed point only: stiff
+            large systems, h omega >~ 1, need it. It compiles about a second longer. dG(k >= 1)
+            has no fixed point and always uses it. Static.
         checkpoint: rematerialise each saved block in reverse mode: a gradient then stores
             one state per save instead of every element's residuals. Static.
         dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps). Static.

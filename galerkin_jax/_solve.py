@@ -34,8 +34,9 @@ updates costs little more than one; a rejected block is undone as a whole.
 
 Stopping rule: a member stops when the error left after its update, ``|dZ| theta / (1 - theta)``
 (theta the contraction rate), is below the round-off ``eps |Z|`` of the unknowns, or when its
-updates stop shrinking: at the round-off of the state whatever K, below ``sqrt(eps)`` of the
-state only with a fresh Newton matrix (the floor of an ill-conditioned system). A growing
+updates stop shrinking: at the round-off of the state whatever K (there also when they still
+shrink, by less than half, past the member's patience), below ``sqrt(eps)`` of the state only
+with a fresh Newton matrix (the floor of an ill-conditioned system). A growing
 update is never applied, and the residual at the accepted iterate must be below ``sqrt(eps)``
 of the state. An accepted iterate gets one more update from its residual, which is already
 known (a product, no residual). Iterating to the floor, not to a tolerance, and that last
@@ -73,8 +74,8 @@ MESSAGES = {
     Status.NEWTON_MAX_ITERATIONS: (
         "An implicit solve did not converge within max_newton_iterations; reduce h or raise the "
         "cap. The element equations may have no real solution for this h. A system of more "
-        "than 256 unknowns (k * 2d) has only the fixed-point iteration unless krylov=True, "
-        "which a stiff one (h omega >~ 1) needs."
+        "than 256 unknowns per element (k * 2d for cG(k)) has only the fixed-point iteration "
+        "unless krylov=True, which a stiff one (h omega >~ 1) needs."
     ),
     Status.NONFINITE: "NaN or inf in the element unknowns; check H, args and the initial state.",
     Status.INVALID_INPUT: "Invalid traced input: h <= 0 or a non-finite initial state.",
@@ -152,11 +153,13 @@ def _matvec(K, r):
     return total
 
 
-def sizes(*arrays):
+def sizes(unit, *arrays):
     """The root-mean-square of each member of each array (leading axis B), in one reduction:
-    an array of shape ``(len(arrays), B)``."""
-    x = jnp.stack([a.reshape(a.shape[0], -1) for a in arrays])
-    return jnp.sqrt(jnp.mean(x * x, axis=-1))
+    an array of shape ``(len(arrays), B)``. The squares are taken of the arrays over ``unit``
+    (B,), the state's size (``_Problem.unit``), so that they neither overflow nor underflow
+    where the numbers are far from 1 (float32: |x| > 1e19 or < 1e-19)."""
+    x = jnp.stack([a.reshape(a.shape[0], -1) / unit[:, None] for a in arrays])
+    return unit[None, :] * jnp.sqrt(jnp.mean(x * x, axis=-1))
 
 
 def _select(mask, x, y):
@@ -180,6 +183,7 @@ class _Problem:
     fn: object  # (Z, params) -> R for one member
     params: object  # leading axis B
     scale: jax.Array  # (B,): the size of the state the unknowns are increments of
+    unit: jax.Array  # (B,): the scale of the sizes, ``scale`` or 1 where that is 0
     max_iterations: int
     newton: bool  # a Newton phase is there to ask for
 
@@ -192,9 +196,11 @@ class _Problem:
         residual linearisations per Krylov iteration (H's Hessian-vector products), however
         sparse H's Hessian. Each member solves alone (vmap), as it would in a run of its own."""
 
+        tolerance = max(KRYLOV_TOLERANCE, 10 * float(jnp.finfo(r.dtype).eps))  # float32: 1.2e-6
+
         def direction(Z, r, params):
             _, jvp = jax.linearize(lambda Z: self.fn(Z, params), Z)
-            return jax.scipy.sparse.linalg.gmres(jvp, r, tol=KRYLOV_TOLERANCE, restart=KRYLOV_RESTART,
+            return jax.scipy.sparse.linalg.gmres(jvp, r, tol=tolerance, restart=KRYLOV_RESTART,
                                                  maxiter=KRYLOV_RESTARTS)[0]
 
         return jax.vmap(direction)(Z, r, self.params)
@@ -205,7 +211,7 @@ class _Problem:
 # kernel launches). A batch keeps them apart: a packed group is a concatenate, whose
 # per-element indexing XLA does not vectorise.
 _GROUPS = {"floats": ("damping", "step", "rate", "r_size"), "flags": ("newton", "fresh", "asked", "active"),
-           "counts": ("iterations", "status")}
+           "counts": ("iterations", "status", "since")}
 
 
 def _pack(c):
@@ -264,7 +270,7 @@ def _block(problem, c, inverse, size):
         steps.append(_update(problem, inverse, Z, r, damping))
         Z = Z - steps[-1].reshape(Z.shape)
         r = problem.residual(Z)
-    measured = sizes(*steps[-2:], Z, r)
+    measured = sizes(problem.unit, *steps[-2:], Z, r)
     step, z_size, r_size = measured[-3], measured[-2], measured[-1]
     before = measured[0] if size > 1 else c["step"]  # the update before the last, with this K
     bad = ~jnp.isfinite(step + r_size)
@@ -275,13 +281,22 @@ def _block(problem, c, inverse, size):
     # the error left after this update is below the round-off of the unknowns. (Allowing a
     # tenth of the state's instead, 9 % fewer iterations, left a bias of +0.008 eps |H| per
     # step in the discrete gradient's energy on Kepler: 2.4e-12 after 1e6 steps, not 6e-13.)
-    small = (step == 0) | ((theta <= 0.5) & (step * theta <= (1.0 - theta) * eps * z_size))
-    accept_here = small & ~bad & (r_size <= floor)
-    # the updates stopped shrinking at the round-off floor: keep the block's start, never the
-    # growing update. Below sqrt(eps) only with a fresh Newton K (a stale K can stall far from
-    # the root; it is refreshed instead); at the round-off of the state whatever the K.
-    stale = ~(newton & fresh)  # a fixed-point K, or a Newton K from an earlier iterate
+    iterations, large = c["iterations"] + size * moving, n > SMALL
+    # a Newton member's patience counts from its matrix, a fixed-point member's from the start
+    patience = jnp.where(newton, iterations - c["since"], iterations) >= jnp.where(newton, PATIENCE,
+                                                                                 PATIENCE_FIXED_POINT[large])
     grown = (step >= before) | (step >= c["step"])  # within the block, or since the last one
+    # round-off that still shrinks, by less than half an update, past the member's patience is
+    # the floor too. (Accepted before the patience, it added a bias: the discrete gradient's
+    # Kepler energy drifted twice as fast, 9e-14 after 4e6 steps, not 4e-14.)
+    settled = noisy & ~grown & (theta > 0.5) & patience
+    small = (step == 0) | settled | ((theta <= 0.5) & (step * theta <= (1.0 - theta) * eps * z_size))
+    accept_here = small & ~bad & (r_size <= floor)
+    # the updates stopped shrinking at the round-off floor (they grew, or shrink by less than
+    # half: noise): keep the block's start, never the growing update. Below sqrt(eps) only with
+    # a fresh Newton K (a stale K can stall far from the root; it is refreshed instead); at the
+    # round-off of the state whatever the K.
+    stale = ~(newton & fresh)  # a fixed-point K, or a Newton K from an earlier iterate
     stalled = ((~stale & (rate >= 1.0) & (step <= floor)) | (noisy & grown)) & (c["r_size"] <= floor)
     done = moving & (accept_here | stalled)
     going = moving & ~done
@@ -295,10 +310,7 @@ def _block(problem, c, inverse, size):
     # that reads them (the selects below, the packed carries), which costs more than the rest
     take, going, failed, backtrack, rejected, accepted = jax.lax.optimization_barrier(
         (take, going, failed, backtrack, rejected, done & accept_here))
-    iterations = c["iterations"] + size * moving
-    large = n > SMALL
     slow = theta > jnp.where(newton, THETA_NEWTON[large], THETA_FIXED_POINT)
-    patience = iterations >= jnp.where(newton, PATIENCE, PATIENCE_FIXED_POINT[large])
     unsure = small & ~bad & stale  # a small update but a large residual: K is off
     asks = rejected | ((slow | patience) & ~noisy) | unsure
     asked = c["asked"] | (going & ~failed & ~backtrack & asks & problem.newton)
@@ -330,10 +342,11 @@ def _fixed_point(problem, c):
 
 
 def _served(c, served):
-    """The members ``served`` a fresh Newton matrix: Newton mode, full steps, a new rate."""
+    """The members ``served`` a fresh Newton matrix: Newton mode, full steps, a new rate, the
+    patience counted from here."""
     return dict(c, newton=c["newton"] | served, fresh=c["fresh"] | served, damping=jnp.where(served, 1.0, c["damping"]),
                 asked=c["asked"] & ~served, step=jnp.where(served, jnp.nan, c["step"]),
-                rate=jnp.where(served, jnp.nan, c["rate"]))
+                rate=jnp.where(served, jnp.nan, c["rate"]), since=jnp.where(served, c["iterations"], c["since"]))
 
 
 def _refresh(problem, c, inverse):
@@ -398,12 +411,12 @@ def _start(problem, Z_pred, Z_alt, skip):
     polynomial can overshoot at large h omega). Returns ``(Z, r, r_size, ok)``; a non-finite Z
     has a non-finite residual."""
     r_pred = problem.residual(Z_pred)
-    z_size, r_size = sizes(Z_pred, r_pred)
+    z_size, r_size = sizes(problem.unit, Z_pred, r_pred)
 
     def rival(Z, r, r_size):
         r_alt = problem.residual(Z_alt)
-        r_alt_size = sizes(r_alt)[0]
-        better = (r_alt_size < r_size) | ~jnp.isfinite(r_size)
+        r_alt_size = sizes(problem.unit, r_alt)[0]
+        better = doubtful & ((r_alt_size < r_size) | ~jnp.isfinite(r_size))  # as in a run alone
         return _select(better, Z_alt, Z), _select(better, r_alt, r), jnp.where(better, r_alt_size, r_size)
 
     doubtful = ~(r_size < 0.1 * z_size) & ~skip
@@ -418,14 +431,16 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     """
     B, n, dtype = Z_pred.shape[0], Z_pred[0].size, Z_pred.dtype
     krylov = matrix.inverse is None and options.krylov
-    problem = _Problem(fn, params, scale, options.max_iterations, matrix.inverse is not None or krylov)
+    unit = jnp.where(scale > 0, scale, 1.0)
+    problem = _Problem(fn, params, scale, unit, options.max_iterations, matrix.inverse is not None or krylov)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
     nan, false = jnp.full(B, jnp.nan, dtype), jnp.zeros(B, bool)
     newton = matrix.newton > 0
     asked = newton & matrix.pending & ok & ~skip
-    c = dict(trips=jnp.int32(0), Z=Z, r=r, newton=newton, fresh=false, asked=asked, damping=jnp.ones(B, dtype),
-             step=nan, rate=nan, r_size=r_size, active=ok & ~skip, iterations=jnp.zeros(B, jnp.int32),
-             status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
+    zero = jnp.zeros(B, jnp.int32)
+    c = dict(trips=jnp.int32(0), Z=Z, r=r, newton=newton, fresh=newton if krylov else false, asked=asked,
+             damping=jnp.ones(B, dtype), step=nan, rate=nan, r_size=r_size, active=ok & ~skip, iterations=zero,
+             since=zero, status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
     c = _fixed_point(problem, _pack(c))
     inverse = matrix.inverse
     if inverse is not None:
