@@ -42,6 +42,12 @@ def element_residual(H):
     return fn
 
 
+def state_scale(z):
+    """The size of a state z = (q, p) that the solver's round-off floor is relative to:
+    max |z|, which propagates NaN and inf."""
+    return jnp.max(jnp.abs(z))
+
+
 def solver_options(method, max_iterations, krylov):
     """The root finder's ``Options``: a method without a fixed point (dG(k >= 1)) needs Newton
     at every size, so Newton-Krylov where no dense matrix is kept."""
@@ -52,8 +58,8 @@ def solve_element(method, H, q, p, h, args, options):
     """One element from the constant predictor, without history: ``(q1, p1, Z, iterations, status)``."""
     fn, params = element_residual(H), (method, q, p, h, args)
     guess = method.initial_guess(q, p)
-    scale = jnp.maximum(jnp.max(jnp.abs(q)), jnp.max(jnp.abs(p)))
     matrix = initial_matrix(guess, method.fixed_point)
+    scale = state_scale(jnp.concatenate([q, p]))
     Z, _, iterations, status, _ = solve(fn, params, guess, guess, matrix, scale, jnp.asarray(False), options)
     dq, dp = method.increment(bind_args(H, args), q, p, Z, h)
     return q + dq, p + dp, Z, iterations, status
@@ -113,7 +119,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     counters0 = jnp.zeros(len(COUNTERS), jnp.int32).at[_AT["status"]].set(input_status(q0, p0, h))
     # the state a failed run carries from then on (no NaN enters the linearisation, nor,
     # under vmap, the others' gradients), and whose scale starts a run
-    start = dict(z=z0, z_prev=z0, Z_prev=guess, scale=jnp.max(jnp.abs(z0)))
+    start = dict(z=z0, z_prev=z0, Z_prev=guess, scale=state_scale(z0))
     carry = dict(start, comp=jnp.zeros_like(z0), misses=(jnp.zeros_like(guess),) * 2,
                  matrix=initial_matrix(guess, method.fixed_point), counters=counters0, done=jnp.zeros((), jnp.int32),
                  estimate=jnp.zeros((), z0.dtype), acc=acc0)
@@ -127,7 +133,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         Z, matrix, iterations, status, trips = solve(
             fn, (method, q, p, h, args), Z_pred, constant, c["matrix"], c["scale"], failed, options)
         z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
-        scale = jnp.max(jnp.abs(z1))  # the next element's scale; propagates NaN and inf
+        scale = state_scale(z1)  # the next element's (NaN or inf where z1 is not finite)
         # an estimate, not a function to differentiate (and no 0 * inf from a failed run's)
         frozen = jax.lax.stop_gradient((q, p, Z, h, args))
         local = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4])) if estimate else jnp.nan

@@ -75,3 +75,18 @@ def symplecticity_defect(A):
     J = np.block([[np.zeros((d, d)), np.eye(d)], [-np.eye(d), np.zeros((d, d))]])
     A = np.asarray(A)
     return np.abs(A.T @ J @ A - J).max()
+
+
+def collocation_tableau(nodes):
+    """The collocation Runge-Kutta tableau on ``nodes`` (Gauss points: Gauss; right Radau
+    points: Radau IIA): a_ij = int_0^{c_i} l_j, b_j = int_0^1 l_j for the Lagrange basis l_j."""
+    s = len(nodes)
+    a, b = np.zeros((s, s)), np.zeros(s)
+    for j in range(s):
+        others = np.delete(nodes, j)
+        l_j = np.polynomial.Polynomial.fromroots(others) if len(others) else np.polynomial.Polynomial([1.0])
+        l_j = l_j / l_j(nodes[j])
+        antiderivative = l_j.integ()
+        a[:, j] = antiderivative(nodes) - antiderivative(0.0)
+        b[j] = antiderivative(1.0) - antiderivative(0.0)
+    return a, b

@@ -19,24 +19,9 @@ def field(z):
     return np.concatenate([p, -q / np.linalg.norm(q) ** 3])
 
 
-def collocation_tableau(nodes):
-    """a_ij = int_0^{c_i} l_j, b_j = int_0^1 l_j for the Lagrange basis l_j on the nodes."""
-    s = len(nodes)
-    x, w = np.polynomial.legendre.leggauss(s + 1)
-    a, b = np.zeros((s, s)), np.zeros(s)
-    for j in range(s):
-        others = np.delete(nodes, j)
-        l_j = np.polynomial.Polynomial.fromroots(others) if len(others) else np.polynomial.Polynomial([1.0])
-        l_j = l_j / l_j(nodes[j])
-        antiderivative = l_j.integ()
-        a[:, j] = antiderivative(nodes) - antiderivative(0.0)
-        b[j] = antiderivative(1.0) - antiderivative(0.0)
-    return a, b
-
-
 def runge_kutta(nodes, z0, h, n_steps):
     """Implicit RK with the collocation tableau on ``nodes``; stage equations by SciPy's root."""
-    a, b = collocation_tableau(np.asarray(nodes))
+    a, b = helpers.collocation_tableau(np.asarray(nodes))
     s, z = len(nodes), np.asarray(z0, dtype=float)
     for _ in range(n_steps):
         stages = lambda K: (K.reshape(s, -1) - np.stack([field(z + h * a[i] @ K.reshape(s, -1)) for i in range(s)])).ravel()

@@ -14,12 +14,11 @@ import numpy as np
 import pytest
 
 import galerkin_jax as gj
+import helpers
 
 N, K_SPRING, H_STEP, STEPS = 50, 100.0, 0.5, 20
-_R = np.sqrt(15.0)
-GAUSS3 = (np.array([[5 / 36, 2 / 9 - _R / 15, 5 / 36 - _R / 30], [5 / 36 + _R / 24, 2 / 9, 5 / 36 - _R / 24],
-                    [5 / 36 + _R / 30, 2 / 9 + _R / 15, 5 / 36]]), np.array([5 / 18, 4 / 9, 5 / 18]))
-RADAU2 = (np.array([[5 / 12, -1 / 12], [3 / 4, 1 / 4]]), np.array([3 / 4, 1 / 4]))
+GAUSS3 = helpers.collocation_tableau(np.asarray(gj.gauss_legendre(3).points))
+RADAU2 = helpers.collocation_tableau(np.asarray(gj.gauss_radau(2).points))  # Radau IIA: nodes 1/3, 1
 
 
 def chain(n=N, k=K_SPRING):
