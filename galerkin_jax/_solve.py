@@ -13,6 +13,7 @@ Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
   once at the block's end. Its loop carries no matrix, so a run that never needs Newton never
   pays for one. A member leaves it when it contracts at a rate above 1/2 or takes too many
   iterations in one element (the predictor's error and the rate together decide the cost).
+  A large batch iterates its stragglers, its last eighth to converge, gathered apart.
   A method whose residual's Jacobian at h = 0 is not I (dG(k >= 1)) has no fixed point and
   solves every element by Newton.
 * The Newton phase: ``K`` the inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and
@@ -96,6 +97,7 @@ PATIENCE_FIXED_POINT = (12, 24)  # ... and a fixed-point member switches to Newt
 NEWTON_STRETCH = 16  # elements a large system that switched to Newton stays with it
 ALWAYS = 2**30  # elements of Newton: for good
 FIXED_POINT_BLOCK = 2  # fixed-point updates per check (module docstring)
+STRAGGLERS = 8  # a batch gathers its last 1 / STRAGGLERS moving members (``_fixed_point``)
 # GMRES for a Newton-Krylov direction: a relative residual of 1e-7 leaves 1e-7 of the error per
 # update, so the updates reach the floor in 2 or 3; restarts of 20, at most 200 products
 KRYLOV_TOLERANCE, KRYLOV_RESTART, KRYLOV_RESTARTS = 1e-7, 20, 10
@@ -343,12 +345,36 @@ def _block(problem, c, inverse, size):
 
 def _fixed_point(problem, c):
     """The fixed-point phase: members not in Newton mode iterate ``Z <- Z - R(Z)`` in blocks
-    until they converge, fail or ask for a Newton matrix. Its loop carries no matrix."""
+    until they converge, fail or ask for a Newton matrix. Its loop carries no matrix.
 
-    def going(c):
-        return jnp.any(_live(problem, c) & ~_get(c, "asked") & ~_get(c, "newton"))
+    A batch of at least ``8 * STRAGGLERS`` runs as a whole while more than one member in
+    ``STRAGGLERS`` moves, then gathers those left (the stragglers: a larger h, a harder
+    stretch of orbit) and iterates them alone, so that the batch does not pay for its
+    slowest members' last updates. (The Newton phase does not: measured, gathering the
+    matrices of its few members cost more than it saved.)"""
+    moving = lambda problem, c: _live(problem, c) & ~_get(c, "asked") & ~_get(c, "newton")
+    block = lambda problem: lambda c: _block(problem, c, None, FIXED_POINT_BLOCK)
+    loop = lambda problem, c: jax.lax.while_loop(lambda c: jnp.any(moving(problem, c)), block(problem), c)
+    B = c["Z"].shape[0]
+    if B < 8 * STRAGGLERS:
+        return loop(problem, c)
+    capacity = B // STRAGGLERS
+    c = jax.lax.while_loop(lambda c: jnp.sum(moving(problem, c)) > capacity, block(problem), c)
+    stragglers = lambda c: _gathered(problem, c, moving(problem, c), capacity, loop)
+    return jax.lax.cond(jnp.any(moving(problem, c)), stragglers, lambda c: c, c)
 
-    return jax.lax.while_loop(going, lambda c: _block(problem, c, None, FIXED_POINT_BLOCK), c)
+
+def _gathered(problem, c, which, capacity, solve):
+    """``solve(problem, c)`` for the members ``which`` alone (at most ``capacity`` of them),
+    gathered into a batch of ``capacity``, and scattered back; the rest are unchanged. The
+    slots left over hold an inactive copy of a member, and are dropped."""
+    B = which.shape[0]
+    index = jnp.nonzero(which, size=capacity, fill_value=B)[0]
+    take = lambda x: x[jnp.minimum(index, B - 1)] if jnp.ndim(x) else x  # scalars are the batch's
+    sub = jax.tree.map(take, c)
+    sub["active"] = sub["active"] & (index < B)
+    sub = solve(dataclasses.replace(problem, params=jax.tree.map(take, problem.params), scale=take(problem.scale)), sub)
+    return jax.tree.map(lambda x, y: x.at[index].set(y, mode="drop") if jnp.ndim(x) else y, c, sub)
 
 
 def _served(c, served):
