@@ -39,8 +39,10 @@ def test_sweep_of_64_configurations_equals_one_by_one_runs():
         energy = jax.vmap(H)(sol.q, sol.p)
         L = jax.vmap(ANGULAR["L"])(sol.q, sol.p)
         # one solver: a member of the batch runs the iteration of the run alone, with its own
-        # matrices and stops; measured bitwise equal, a few ulps allowed for how XLA compiles
-        # another batch size
+        # matrices and stops, also where it is one of the stragglers the batch (64 = 8 x
+        # STRAGGLERS members) gathers apart; measured bitwise equal, a few ulps allowed for how
+        # XLA compiles another batch size. (Fails if the stragglers' updates are not scattered
+        # back.)
         np.testing.assert_allclose(result.q[i], sol.q[-1], rtol=0, atol=1e-15)
         np.testing.assert_allclose(result.p[i], sol.p[-1], rtol=0, atol=1e-15)
         # the diagnostics evaluate H and L in the loop, the test afterwards: XLA compiles the
