@@ -1,7 +1,7 @@
-"""``python -m galerkin_jax``: the ``galerkin-jax`` command line tool (``cli.main``)."""
+"""``python -m galerkin_jax``: the ``galerkin-jax`` command line tool (``cli.console``)."""
 
 import sys
 
-from .cli import main
+from .cli import console
 
-sys.exit(main())
+sys.exit(console())

@@ -23,7 +23,8 @@ def groups(method_specs):
 
 
 def sweep_call(problem, group, hs, states, scales, n_steps, dtype, progress=False, krylov=False):
-    """A function of no arguments: one ``gj.sweep`` over ``group`` x ``hs`` x ``states``.
+    """One ``gj.sweep`` over ``group`` x ``hs`` x ``states``: ``(fn, configs, reference)``,
+    ``fn(configs, reference)`` the sweep (the values are its arguments, not constants in it).
 
     The reference for the final error is the scene's exact solution at ``n_steps h`` for the
     unscaled initial state (NaN for the others). With LagrangianVI the sweep integrates L,
@@ -43,8 +44,9 @@ def sweep_call(problem, group, hs, states, scales, n_steps, dtype, progress=Fals
         exact = [problem.exact(n_steps * h) if scale == 1.0 else (nan, nan)
                  for _, h, scale in itertools.product(group, hs, scales)]
         reference = tuple(np.stack([np.asarray(x[i], dtype=float) for x in exact]).astype(dtype) for i in (0, 1))
-    return lambda: gj.sweep(fn, configs, n_steps=n_steps, invariants=invariants, reference=reference,
-                            progress=progress, krylov=krylov)
+    call = lambda configs, reference: gj.sweep(fn, configs, n_steps=n_steps, invariants=invariants,
+                                               reference=reference, progress=progress, krylov=krylov)
+    return call, configs, reference
 
 
 def rows(group, hs, scales, result, n_steps):

@@ -6,7 +6,7 @@ Kept so that older instructions still work; extra arguments go to ``run``, e.g.
 
 import sys
 
-from .cli import main
+from .cli import console
 
 if __name__ == "__main__":
-    sys.exit(main(["run", *sys.argv[1:]]))
+    sys.exit(console(["run", *sys.argv[1:]]))

@@ -47,9 +47,11 @@ h, n_steps = 0.5, 4
 '''
 
 
-def galerkin_jax(*argv, cwd):
-    """``python -m galerkin_jax ARGV`` in ``cwd``; returns the CompletedProcess."""
-    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+def galerkin_jax(*argv, cwd, cache=""):
+    """``python -m galerkin_jax ARGV`` in ``cwd``, its compilation cache in ``cache`` (none
+    by default: the suite writes nothing to the user's cache); returns the CompletedProcess."""
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),
+               **{cli.CACHE_VARIABLE: cache})
     return subprocess.run([sys.executable, "-m", *argv], cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=300)
 
@@ -76,6 +78,27 @@ def test_default_run_writes_trajectory_plots_and_summary(tmp_path):
     assert "cG(3): continuous Galerkin, degree 3 [GBS, eq. (16)], 3-point Gauss-Legendre rule" in out
     assert "compile" in out and "Newton" in out and "kepler_cG3-gauss3.npz (" in out
     assert out.strip().splitlines()[-1].startswith(f"Look at {os.path.join('out', 'kepler_cG3-gauss3_energy.png')}")
+
+
+def test_a_run_again_with_another_step_size_loads_its_programs_from_the_cache(tmp_path):
+    cache = str(tmp_path / "cache")
+    first = galerkin_jax("galerkin_jax", "run", "--steps", "200", "--out", "out", cwd=tmp_path, cache=cache)
+    assert first.returncode == 0, first.stderr
+    entries = sorted(os.listdir(cache))
+    assert len(entries) >= 2  # the integration and the plots' programs (24 measured for the default run)
+    again = galerkin_jax("galerkin_jax", "run", "--steps", "200", "--step-size", "0.04", "--out", "out", cwd=tmp_path,
+                         cache=cache)
+    assert again.returncode == 0, again.stderr
+    assert sorted(os.listdir(cache)) == entries  # h is an argument of the programs: nothing new to compile
+    energy = lambda done: next(line for line in done.stdout.splitlines() if line.startswith("energy"))
+    assert energy(again) != energy(first)  # ... and it did run with the new h
+
+
+def test_the_cache_defaults_to_the_user_cache_folder_and_an_empty_variable_turns_it_off():
+    assert cli.compile_cache_folder({"XDG_CACHE_HOME": "/x"}) == os.path.join("/x", "galerkin_jax", "xla")
+    assert cli.compile_cache_folder({"HOME": "/h"}).endswith(os.path.join(".cache", "galerkin_jax", "xla"))
+    assert cli.compile_cache_folder({cli.CACHE_VARIABLE: "/c", "XDG_CACHE_HOME": "/x"}) == "/c"
+    assert cli.compile_cache_folder({cli.CACHE_VARIABLE: ""}) is None
 
 
 def test_help_names_the_tool_and_a_bad_option_exits_2(tmp_path):
