@@ -73,17 +73,25 @@ def compensated_add(x, dx, c):
 
 
 # the continuation's misses, extrapolated: none before the second element, the last one
-# for the third, linearly from the last two after that
+# for the third, linearly from the last two after that (rows: the elements done before)
 _MISS_WEIGHTS = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [2.0, -1.0]])
 
 
-def predictor(method, q, p, previous, misses, count):
+def predictor(method, q, p, previous, correction):
     """The previous element's polynomial continued one element ahead, plus the extrapolated
-    error of that continuation (its 'miss' varies smoothly from element to element: the
-    linear extrapolation leaves O(h^2) of it). Returns ``(Z_pred, Z_continued, Z_constant)``."""
+    error of that continuation (``correction``). Returns ``(Z_pred, Z_continued, Z_constant)``."""
     continued = method.initial_guess(q, p, previous)
-    weights = jnp.asarray(_MISS_WEIGHTS, q.dtype)[count]
-    return continued + weights[0] * misses[0] + weights[1] * misses[1], continued, method.initial_guess(q, p)
+    return continued + correction, continued, method.initial_guess(q, p)
+
+
+def correction(miss, last_miss, count):
+    """The next element's correction of its continued polynomial: the continuation's miss
+    varies smoothly from element to element, so the last two misses, extrapolated linearly,
+    leave O(h^2) of it; ``count`` elements done before the next one (at most 3). Carried
+    instead of the two misses, whose shift from one slot of the loop's carry to the other
+    would cost a copy each."""
+    weights = jnp.asarray(_MISS_WEIGHTS, miss.dtype)[count]
+    return weights[0] * miss + weights[1] * last_miss
 
 
 # the run's counters, carried as one int32 array (one fused kernel per element, not five);
@@ -120,7 +128,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     # the state a failed run carries from then on (no NaN enters the linearisation, nor,
     # under vmap, the others' gradients), and whose scale starts a run
     start = dict(z=z0, z_prev=z0, Z_prev=guess, scale=state_scale(z0))
-    carry = dict(start, comp=jnp.zeros_like(z0), misses=(jnp.zeros_like(guess),) * 2,
+    carry = dict(start, comp=jnp.zeros_like(z0), miss=jnp.zeros_like(guess), correction=jnp.zeros_like(guess),
                  matrix=initial_matrix(guess, method.fixed_point), counters=counters0, done=jnp.zeros((), jnp.int32),
                  estimate=jnp.zeros((), z0.dtype), acc=acc0)
     total = n_blocks * block_size
@@ -129,7 +137,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         z, counters = c["z"], c["counters"]
         (q, p), failed = split(z), counters[_AT["status"]] != Status.SUCCESS
         previous = (*split(c["z_prev"]), c["Z_prev"])
-        Z_pred, continued, constant = predictor(method, q, p, previous, c["misses"], counters[_AT["count"]])
+        Z_pred, continued, constant = predictor(method, q, p, previous, c["correction"])
         Z, matrix, iterations, status, trips = solve(
             fn, (method, q, p, h, args), Z_pred, constant, c["matrix"], c["scale"], failed, options)
         z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
@@ -142,13 +150,14 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         ok = status == Status.SUCCESS
         now = jax.tree.map(lambda a, b: jnp.where(ok, b, a), start, dict(z=z1, z_prev=z, Z_prev=Z, scale=scale))
         count = counters[_AT["count"]]
-        misses = (jnp.where(count >= 1, Z - continued, c["misses"][0]), c["misses"][0])
+        miss = jnp.where(count >= 1, Z - continued, c["miss"])
         acc = c["acc"] if observe is None else observe(c["acc"], *split(now["z"]))
         counters = jnp.stack([status, counters[_AT["total"]] + iterations,
                               jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips,
                               jnp.minimum(count + 1, 3)])
-        new = dict(c, **now, comp=comp, misses=misses, matrix=matrix, counters=counters.astype(jnp.int32),
-                   done=c["done"] + 1, estimate=jnp.maximum(c["estimate"], local), acc=acc)
+        new = dict(c, **now, comp=comp, miss=miss, correction=correction(miss, c["miss"], counters[_AT["count"]]),
+                   matrix=matrix, counters=counters.astype(jnp.int32), done=c["done"] + 1,
+                   estimate=jnp.maximum(c["estimate"], local), acc=acc)
         if progress:
             _progress.report(new["done"], total, _progress.stride(total))
         kept = (z, method.polynomial(H_bound, q, p, Z, h)) if dense else None
