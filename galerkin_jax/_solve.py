@@ -123,17 +123,29 @@ class Matrix:
     """The iteration matrix ``K`` of each member, kept across elements.
 
     Attributes:
-        newton: int32, shape ``(B,)`` (or ``()`` for one run): the elements, this one
-            included, that the member still solves by Newton; 0 for the fixed point (module
-            docstring).
-        pending: bool, like ``newton``: ``inverse`` is yet to be computed.
+        state: int32, shape ``(B, 2)`` (or ``(2,)`` for one run): ``newton`` and ``pending``
+            in one array (one kernel and one copy per element, not two).
         inverse: ``(B, n, n)`` inverse Jacobians, or None when n > ``DENSE_LIMIT`` (then Newton
             is Newton-Krylov, with ``Options.krylov``, or there is none).
+
+    ``newton``: the elements, this one included, that the member still solves by Newton; 0 for
+    the fixed point (module docstring). ``pending``: ``inverse`` is yet to be computed.
     """
 
-    newton: jax.Array
-    pending: jax.Array
+    state: jax.Array
     inverse: object
+
+    @classmethod
+    def of(cls, newton, pending, inverse):
+        return cls(jnp.stack([jnp.asarray(newton, jnp.int32), jnp.asarray(pending, jnp.int32)], axis=-1), inverse)
+
+    @property
+    def newton(self):
+        return self.state[..., 0]
+
+    @property
+    def pending(self):
+        return self.state[..., 1] != 0
 
 
 def initial_matrix(Z, fixed_point=True):
@@ -142,8 +154,7 @@ def initial_matrix(Z, fixed_point=True):
     n = Z.size
     dense = n <= DENSE_LIMIT
     newton = 1 if dense and n <= SMALL else 0
-    return Matrix(newton=jnp.asarray(newton if fixed_point else ALWAYS, jnp.int32), pending=jnp.asarray(True),
-                  inverse=jnp.zeros((n, n), Z.dtype) if dense else None)
+    return Matrix.of(newton if fixed_point else ALWAYS, True, jnp.zeros((n, n), Z.dtype) if dense else None)
 
 
 def _matvec(K, r):
@@ -494,7 +505,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     # elements of Newton left: one fewer for a member in Newton mode, a stretch for one that switched
     switched = NEWTON_STRETCH if n > SMALL else ALWAYS
     left = jnp.where(newton, matrix.newton, jnp.where(c["newton"], switched, 0)) - c["newton"]
-    matrix = Matrix(newton=left.astype(jnp.int32), pending=matrix.pending & ~c["fresh"], inverse=inverse)
+    matrix = Matrix.of(left, matrix.pending & ~c["fresh"], inverse)
     return Z, matrix, c["iterations"], status, jnp.broadcast_to(c["trips"], (B,))
 
 
