@@ -230,18 +230,20 @@ class _Problem:
 
 
 # The scalars of each member travel as two stacked arrays for one run, the flags as 0/1 among
-# the int32 counts: XLA then computes each group in one fused kernel, and copies it once per
-# loop trip, not once per scalar (the loop's cost is mostly kernel launches; a third array of
+# the int32 counts (the batch's count of updates, ``trips``, too: in a run alone it is the
+# member's): XLA then computes each group in one fused kernel, and copies it once per loop
+# trip, not once per scalar (the loop's cost is mostly kernel launches; a third array of
 # flags cost 3-10 % of a step, one float array for all 5-40 %, measured). A batch keeps them
 # apart: a packed group is a concatenate, whose per-element indexing XLA does not vectorise.
 _GROUPS = {"floats": ("damping", "step", "rate", "r_size"),
-           "ints": ("newton", "fresh", "asked", "active", "iterations", "status", "since")}
+           "ints": ("newton", "fresh", "asked", "active", "iterations", "status", "since", "trips")}
 _FLAGS = ("newton", "fresh", "asked", "active")
 
 
 def _pack(c):
     if c["Z"].shape[0] > 1:
         return c
+    c = dict(c, trips=c["trips"].reshape(1))
     packed = {k: v for k, v in c.items() if not any(k in names for names in _GROUPS.values())}
     return dict(packed, **{group: jnp.stack([c[k].astype(jnp.int32) if k in _FLAGS else c[k] for k in names])
                            for group, names in _GROUPS.items()})
@@ -251,7 +253,8 @@ def _unpack(c):
     if "ints" not in c:
         return c
     values = {k: v for k, v in c.items() if k not in _GROUPS}
-    return dict(values, **{k: _get(c, k) for names in _GROUPS.values() for k in names})
+    unpacked = dict(values, **{k: _get(c, k) for names in _GROUPS.values() for k in names})
+    return dict(unpacked, trips=unpacked["trips"].reshape(()))
 
 
 def _get(c, name):
