@@ -149,14 +149,14 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         status = jnp.where(failed, counters[_AT["status"]], status)  # the first failure is kept
         ok = status == Status.SUCCESS
         now = jax.tree.map(lambda a, b: jnp.where(ok, b, a), start, dict(z=z1, z_prev=z, Z_prev=Z, scale=scale))
-        count = counters[_AT["count"]]
+        count, next_count = counters[_AT["count"]], jnp.minimum(counters[_AT["count"]] + 1, 3)
         miss = jnp.where(count >= 1, Z - continued, c["miss"])
         acc = c["acc"] if observe is None else observe(c["acc"], *split(now["z"]))
         counters = jnp.stack([status, counters[_AT["total"]] + iterations,
                               jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips,
-                              jnp.minimum(count + 1, 3)])
-        new = dict(c, **now, comp=comp, miss=miss, correction=correction(miss, c["miss"], counters[_AT["count"]]),
-                   matrix=matrix, counters=counters.astype(jnp.int32), done=c["done"] + 1,
+                              next_count])
+        new = dict(c, **now, comp=comp, miss=miss, correction=correction(miss, c["miss"], next_count), matrix=matrix,
+                   counters=counters.astype(jnp.int32), done=c["done"] + 1,
                    estimate=jnp.maximum(c["estimate"], local), acc=acc)
         if progress:
             _progress.report(new["done"], total, _progress.stride(total))
