@@ -230,20 +230,18 @@ class _Problem:
 
 
 # The scalars of each member travel as two stacked arrays for one run, the flags as 0/1 among
-# the int32 counts (the batch's count of updates, ``trips``, too: in a run alone it is the
-# member's): XLA then computes each group in one fused kernel, and copies it once per loop
-# trip, not once per scalar (the loop's cost is mostly kernel launches; a third array of
+# the int32 counts: XLA then computes each group in one fused kernel, and copies it once per
+# loop trip, not once per scalar (the loop's cost is mostly kernel launches; a third array of
 # flags cost 3-10 % of a step, one float array for all 5-40 %, measured). A batch keeps them
 # apart: a packed group is a concatenate, whose per-element indexing XLA does not vectorise.
 _GROUPS = {"floats": ("damping", "step", "rate", "r_size"),
-           "ints": ("newton", "fresh", "asked", "active", "iterations", "status", "since", "trips")}
+           "ints": ("newton", "fresh", "asked", "active", "iterations", "status", "since")}
 _FLAGS = ("newton", "fresh", "asked", "active")
 
 
 def _pack(c):
     if c["Z"].shape[0] > 1:
         return c
-    c = dict(c, trips=c["trips"].reshape(1))
     packed = {k: v for k, v in c.items() if not any(k in names for names in _GROUPS.values())}
     return dict(packed, **{group: jnp.stack([c[k].astype(jnp.int32) if k in _FLAGS else c[k] for k in names])
                            for group, names in _GROUPS.items()})
@@ -253,8 +251,7 @@ def _unpack(c):
     if "ints" not in c:
         return c
     values = {k: v for k, v in c.items() if k not in _GROUPS}
-    unpacked = dict(values, **{k: _get(c, k) for names in _GROUPS.values() for k in names})
-    return dict(unpacked, trips=unpacked["trips"].reshape(()))
+    return dict(values, **{k: _get(c, k) for names in _GROUPS.values() for k in names})
 
 
 def _get(c, name):
@@ -350,8 +347,10 @@ def _block(problem, c, inverse, size):
     # follows the predictor's smooth miss) and would add up over the elements. (Not with
     # Newton-Krylov: a Krylov solve is no product, and exact Newton leaves no such error.)
     polished = Z if inverse is KRYLOV else Z - _update(problem, inverse, Z, r, damping).reshape(Z.shape)
+    # a batch counts the updates it ran (``trips``); a run alone's are its iterations
+    counted = {"trips": c["trips"] + size} if "trips" in c else {}
     return _pack(dict(
-        c, trips=c["trips"] + size, Z=_select(accepted, polished, _select(take, Z, Z0)), r=_select(take, r, r0),
+        c, **counted, Z=_select(accepted, polished, _select(take, Z, Z0)), r=_select(take, r, r0),
         asked=asked, active=(c["active"] & ~moving) | (going & ~failed),
         damping=jnp.where(backtrack, 0.5 * damping, jnp.where(take, jnp.minimum(1.0, 2.0 * damping), damping)),
         step=jnp.where(moving, jnp.where(restart, jnp.nan, step), c["step"]),
@@ -370,28 +369,41 @@ def _fixed_point(problem, c):
     stretch of orbit) and iterates them alone, so that the batch does not pay for its
     slowest members' last updates. (The Newton phase does not: measured, gathering the
     matrices of its few members cost more than it saved.)"""
-    moving = lambda problem, c: _live(problem, c) & ~_get(c, "asked") & ~_get(c, "newton")
-    block = lambda problem: lambda c: _block(problem, c, None, FIXED_POINT_BLOCK)
-    loop = lambda problem, c: jax.lax.while_loop(lambda c: jnp.any(moving(problem, c)), block(problem), c)
+    def moving(problem, c):
+        return _live(problem, c) & ~_get(c, "asked") & ~_get(c, "newton")
+
+    def blocks(problem, c, going):
+        return jax.lax.while_loop(going, lambda c: _block(problem, c, None, FIXED_POINT_BLOCK), c)
+
+    def loop(problem, c):
+        return blocks(problem, c, lambda c: jnp.any(moving(problem, c)))
+
     B = c["Z"].shape[0]
     if B < 8 * STRAGGLERS:
         return loop(problem, c)
     capacity = B // STRAGGLERS
-    c = jax.lax.while_loop(lambda c: jnp.sum(moving(problem, c)) > capacity, block(problem), c)
+    c = blocks(problem, c, lambda c: jnp.sum(moving(problem, c)) > capacity)
     stragglers = lambda c: _gathered(problem, c, moving(problem, c), capacity, loop)
     return jax.lax.cond(jnp.any(moving(problem, c)), stragglers, lambda c: c, c)
 
 
-def _gathered(problem, c, which, capacity, solve):
-    """``solve(problem, c)`` for the members ``which`` alone (at most ``capacity`` of them),
-    gathered into a batch of ``capacity``, and scattered back; the rest are unchanged. The
-    slots left over hold an inactive copy of a member, and are dropped."""
+def _members(problem, which, capacity):
+    """The members ``which`` (at most ``capacity`` of them) as a batch of ``capacity``:
+    ``(index, take, sub)``, ``take`` gathering a per-member array, ``sub`` their problem. The
+    slots left over hold a copy of member B - 1 and index B, which ``.at[index]`` drops."""
     B = which.shape[0]
     index = jnp.nonzero(which, size=capacity, fill_value=B)[0]
-    take = lambda x: x[jnp.minimum(index, B - 1)] if jnp.ndim(x) else x  # scalars are the batch's
-    sub = jax.tree.map(take, c)
-    sub["active"] = sub["active"] & (index < B)
-    sub = solve(dataclasses.replace(problem, params=jax.tree.map(take, problem.params), scale=take(problem.scale)), sub)
+    take = lambda x: x[jnp.minimum(index, B - 1)]
+    return index, take, dataclasses.replace(problem, params=jax.tree.map(take, problem.params), scale=take(problem.scale))
+
+
+def _gathered(problem, c, which, capacity, solve):
+    """``solve(problem, c)`` for the members ``which`` alone, gathered (``_members``) and
+    scattered back; the rest are unchanged, the slots left over inactive."""
+    index, take, sub_problem = _members(problem, which, capacity)
+    sub = jax.tree.map(lambda x: take(x) if jnp.ndim(x) else x, c)  # scalars are the batch's
+    sub["active"] = sub["active"] & (index < which.shape[0])
+    sub = solve(sub_problem, sub)
     return jax.tree.map(lambda x, y: x.at[index].set(y, mode="drop") if jnp.ndim(x) else y, c, sub)
 
 
@@ -411,9 +423,7 @@ def _refresh(problem, c, inverse):
     capacity = min(B, max(8, B // 8))
 
     def refreshed(Z, inverse, asked):
-        index = jnp.nonzero(asked, size=capacity, fill_value=B)[0]
-        take = lambda x: x[jnp.minimum(index, B - 1)]
-        sub = dataclasses.replace(problem, params=jax.tree.map(take, problem.params))
+        index, take, sub = _members(problem, asked, capacity)
         inverse = inverse.at[index].set(jnp.linalg.inv(block_jacobians(sub.residual, take(Z))), mode="drop")
         return inverse, jnp.zeros(B, bool).at[index].set(True, mode="drop")
 
@@ -491,9 +501,11 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     newton = matrix.newton > 0
     asked = newton & matrix.pending & ok & ~skip
     zero = jnp.zeros(B, jnp.int32)
-    c = dict(trips=jnp.int32(0), Z=Z, r=r, newton=newton, fresh=newton if krylov else false, asked=asked,
+    c = dict(Z=Z, r=r, newton=newton, fresh=newton if krylov else false, asked=asked,
              damping=jnp.ones(B, dtype), step=nan, rate=nan, r_size=r_size, active=ok & ~skip, iterations=zero,
              since=zero, status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
+    if B > 1:
+        c["trips"] = jnp.int32(0)  # the batch's updates; a run alone's are its iterations
     c = _fixed_point(problem, _pack(c))
     inverse = matrix.inverse
     if inverse is not None:
@@ -509,7 +521,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     switched = NEWTON_STRETCH if n > SMALL else ALWAYS
     left = jnp.where(newton, matrix.newton, jnp.where(c["newton"], switched, 0)) - c["newton"]
     matrix = Matrix.of(left, matrix.pending & ~c["fresh"], inverse)
-    return Z, matrix, c["iterations"], status, jnp.broadcast_to(c["trips"], (B,))
+    return Z, matrix, c["iterations"], status, jnp.broadcast_to(c.get("trips", c["iterations"]), (B,))
 
 
 def _fold(x, batched, axis_size):
