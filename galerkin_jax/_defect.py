@@ -35,8 +35,14 @@ from numpy.polynomial import legendre as npleg
 from . import _basis
 
 
-def symplectic_field(H):
-    """z -> J DH(z) for z = (q, p) stacked, with DH from ``jax.grad`` [GBS, eq. (6)]."""
+def symplectic_field(H, part=None):
+    """z -> J DH(z) for z = (q, p) stacked, with DH from ``jax.grad`` [GBS, eq. (6)]; ``part``
+    "q" or "p": that half of it alone, q' = dH/dp or p' = -dH/dq, from the one partial
+    gradient it needs."""
+    if part == "q":
+        return lambda z: jax.grad(H, argnums=1)(*jnp.split(z, 2))
+    if part == "p":
+        return lambda z: -jax.grad(H, argnums=0)(*jnp.split(z, 2))
     dH = jax.grad(H, argnums=(0, 1))
 
     def field(z):

@@ -31,17 +31,18 @@ def check_rule(cls, quadrature):
         raise TypeError(f"{cls} needs a QuadratureRule, got {type(quadrature).__name__}.")
 
 
-def tested_field(H, quadrature, z0, C, antiderivative, n_test):
+def tested_field(H, quadrature, z0, C, antiderivative, n_test, part=None):
     """(2i + 1) sum_l w_l P_i(alpha_l) J DH(z^h(alpha_l)), i < n_test: the DH integrals of eqs. (16), (19).
 
     ``z^h = z0 + basis(alpha) @ C`` with ``basis`` the Legendre antiderivatives (cG) or the
-    Legendre polynomials themselves (dG).
+    Legendre polynomials themselves (dG); ``part`` "q" or "p": the q or p half alone
+    (``symplectic_field``).
     """
     dtype = C.dtype
     alpha = jnp.asarray(quadrature.points, dtype)
     w = jnp.asarray(quadrature.weights, dtype)
     basis = _basis.legendre_antiderivatives(alpha, len(C)) if antiderivative else _basis.legendre_values(alpha, len(C))
-    field = jax.vmap(symplectic_field(H))(z0[None, :] + _basis.combine(basis, C))
+    field = jax.vmap(symplectic_field(H, part))(z0[None, :] + _basis.combine(basis, C))
     scale = jnp.asarray(_basis.test_scale(n_test), dtype)
     return scale[:, None] * _basis.combine(_basis.legendre_values(alpha, n_test).T, w[:, None] * field)
 
@@ -64,6 +65,7 @@ class CG:
     """
 
     fixed_point = True  # R = C - h (...): dR/dC = I at h = 0, so Z <- Z - R(Z) contracts for small h
+    partitioned = True  # residual(..., part="q" | "p"): the Gauss-Seidel sweep of ``_march.element_residual``
 
     k: int = dataclasses.field(metadata=dict(static=True))
     quadrature: QuadratureRule
@@ -79,10 +81,12 @@ class CG:
         C = previous[2]
         return _basis.combine(_basis.shift_matrix(self.k), C)
 
-    def residual(self, H, q0, p0, C, h):
-        """R(C) = 0 is eq. (16) tested with (2i + 1) P_i, i < k: C_i - h (2i+1) Q[P_i J DH(z^h)]."""
+    def residual(self, H, q0, p0, C, h, part=None):
+        """R(C) = 0 is eq. (16) tested with (2i + 1) P_i, i < k: C_i - h (2i+1) Q[P_i J DH(z^h)];
+        ``part`` "q" or "p": the equations of that half of the columns alone."""
         z0 = jnp.concatenate([q0, p0])
-        return C - h * tested_field(H, self.quadrature, z0, C, True, self.k)
+        columns = {None: C, "q": C[:, : q0.shape[0]], "p": C[:, q0.shape[0] :]}[part]
+        return columns - h * tested_field(H, self.quadrature, z0, C, True, self.k, part)
 
     def increment(self, H, q0, p0, C, h):
         """z_1 - z_0 = z^h(1) - z_0 = C_0, split into (dq, dp)."""

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _progress
-from ._solve import Options, Status, initial_matrix, solve
+from ._solve import SMALL, Options, Status, initial_matrix, solve
 
 
 def bind_args(H, args):
@@ -33,11 +33,26 @@ def nan_if_failed(x, status):
 
 
 def element_residual(H):
-    """``(Z, params) -> R``, the element equations with everything they depend on in ``params``."""
+    """``(Z, params) -> R``, the element equations with everything they depend on in ``params``.
+
+    A partitioned method of more than ``SMALL`` unknowns (columns q | p) is solved through
+    the residual of its Gauss-Seidel sweep, ``R~ = Z - G(Z)``: G first updates the p columns
+    from R_p(Z), then the q columns from R_q at that update. R~ has R's roots, and its
+    fixed-point iteration ``Z <- G(Z)`` contracts at about the square of the rate of
+    ``Z <- Z - R(Z)`` (for separable H, T(p) + V(q), exactly two of its updates in one,
+    for the arithmetic of one). Small systems keep R: their cost is the loop's kernels,
+    which the sweep's two half-residuals raise more than its rate saves.
+    """
 
     def fn(Z, params):
         method, q0, p0, h, args = params
-        return method.residual(bind_args(H, args), q0, p0, Z, h)
+        H_bound = bind_args(H, args)
+        if not (getattr(method, "partitioned", False) and Z.size > SMALL):
+            return method.residual(H_bound, q0, p0, Z, h)
+        r_p = method.residual(H_bound, q0, p0, Z, h, part="p")
+        Z_q, Z_p = jnp.split(Z, 2, axis=-1)
+        r_q = method.residual(H_bound, q0, p0, jnp.concatenate([Z_q, Z_p - r_p], axis=-1), h, part="q")
+        return jnp.concatenate([r_q, r_p], axis=-1)
 
     return fn
 
