@@ -35,22 +35,27 @@ from numpy.polynomial import legendre as npleg
 from . import _basis
 
 
-def symplectic_field(H, part=None):
-    """z -> J DH(z) for z = (q, p) stacked, with DH from ``jax.grad`` [GBS, eq. (6)]; ``part``
-    "q" or "p": that half of it alone, q' = dH/dp or p' = -dH/dq, from the one partial
+def hamilton_field(H, part=None):
+    """(q, p) -> J DH(q, p) = (dH/dp, -dH/dq) stacked, with DH from ``jax.grad`` [GBS, eq. (6)];
+    ``part`` "q" or "p": that half alone, q' = dH/dp or p' = -dH/dq, from the one partial
     gradient it needs."""
     if part == "q":
-        return lambda z: jax.grad(H, argnums=1)(*jnp.split(z, 2))
+        return jax.grad(H, argnums=1)
     if part == "p":
-        return lambda z: -jax.grad(H, argnums=0)(*jnp.split(z, 2))
+        return lambda q, p: -jax.grad(H, argnums=0)(q, p)
     dH = jax.grad(H, argnums=(0, 1))
 
-    def field(z):
-        q, p = jnp.split(z, 2)
+    def field(q, p):
         dHdq, dHdp = dH(q, p)
         return jnp.concatenate([dHdp, -dHdq])
 
     return field
+
+
+def symplectic_field(H):
+    """z -> J DH(z) for z = (q, p) stacked (``hamilton_field``)."""
+    field = hamilton_field(H)
+    return lambda z: field(*jnp.split(z, 2))
 
 
 @functools.lru_cache(maxsize=None)

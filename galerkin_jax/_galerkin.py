@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _basis
-from ._defect import local_error, symplectic_field
+from ._defect import hamilton_field, local_error
 from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
 
@@ -36,15 +36,23 @@ def tested_field(H, quadrature, z0, C, antiderivative, n_test, part=None):
 
     ``z^h = z0 + basis(alpha) @ C`` with ``basis`` the Legendre antiderivatives (cG) or the
     Legendre polynomials themselves (dG); ``part`` "q" or "p": the q or p half alone
-    (``symplectic_field``).
+    (``hamilton_field``).
     """
-    dtype = C.dtype
+    dtype, d = C.dtype, z0.shape[0] // 2
     alpha = jnp.asarray(quadrature.points, dtype)
     w = jnp.asarray(quadrature.weights, dtype)
     basis = _basis.legendre_antiderivatives(alpha, len(C)) if antiderivative else _basis.legendre_values(alpha, len(C))
-    field = jax.vmap(symplectic_field(H, part))(z0[None, :] + _basis.combine(basis, C))
+    # q and p at the points from C's column halves: where C is a concatenate of halves (the
+    # sweep), XLA then reads them directly instead of copying them together and apart
+    at_points = lambda x0, X: x0[None, :] + _basis.combine(basis, X)
+    field = jax.vmap(hamilton_field(H, part))(at_points(z0[:d], C[:, :d]), at_points(z0[d:], C[:, d:]))
     scale = jnp.asarray(_basis.test_scale(n_test), dtype)
     return scale[:, None] * _basis.combine(_basis.legendre_values(alpha, n_test).T, w[:, None] * field)
+
+
+def _columns(Z, d, part):
+    """The q (``part`` "q") or p ("p") columns of unknowns ``(m, 2d)``, or all (None)."""
+    return {None: Z, "q": Z[:, :d], "p": Z[:, d:]}[part]
 
 
 @pytree_dataclass
@@ -65,7 +73,7 @@ class CG:
     """
 
     fixed_point = True  # R = C - h (...): dR/dC = I at h = 0, so Z <- Z - R(Z) contracts for small h
-    partitioned = True  # residual(..., part="q" | "p"): the Gauss-Seidel sweep of ``_march.element_residual``
+    partition_axis = -1  # C's q | p columns; residual(..., part=): the sweep of ``_march.element_residual``
 
     k: int = dataclasses.field(metadata=dict(static=True))
     quadrature: QuadratureRule
@@ -85,8 +93,7 @@ class CG:
         """R(C) = 0 is eq. (16) tested with (2i + 1) P_i, i < k: C_i - h (2i+1) Q[P_i J DH(z^h)];
         ``part`` "q" or "p": the equations of that half of the columns alone."""
         z0 = jnp.concatenate([q0, p0])
-        columns = {None: C, "q": C[:, : q0.shape[0]], "p": C[:, q0.shape[0] :]}[part]
-        return columns - h * tested_field(H, self.quadrature, z0, C, True, self.k, part)
+        return _columns(C, q0.shape[0], part) - h * tested_field(H, self.quadrature, z0, C, True, self.k, part)
 
     def increment(self, H, q0, p0, C, h):
         """z_1 - z_0 = z^h(1) - z_0 = C_0, split into (dq, dp)."""
@@ -115,6 +122,8 @@ class DG:
         quadrature: rule on [0, 1]; its arrays may be traced, vmapped and differentiated.
     """
 
+    partition_axis = -1  # a's q | p columns; residual(..., part=): the sweep of ``_march.element_residual``
+
     k: int = dataclasses.field(metadata=dict(static=True))
     quadrature: QuadratureRule
 
@@ -135,15 +144,18 @@ class DG:
         a = previous[2]
         return _basis.combine(_basis.shift_matrix(self.k + 1, subtract_end=True), a)
 
-    def residual(self, H, q0, p0, a, h):
-        """R(a) = 0 is eq. (19) tested with (2i + 1) P_i, i <= k."""
+    def residual(self, H, q0, p0, a, h, part=None):
+        """R(a) = 0 is eq. (19) tested with (2i + 1) P_i, i <= k; ``part`` "q" or "p": the
+        equations of that half of the columns alone."""
         n, dtype = self.k + 1, a.dtype
+        columns = _columns(a, q0.shape[0], part)
         signs = jnp.asarray((-1.0) ** np.arange(n), dtype)  # P_j(-1)
-        jump = signs @ a  # z^h(0) - z_0
-        derivative = _basis.combine(_basis.derivative_matrix(n), a)
+        jump = signs @ columns  # z^h(0) - z_0
+        derivative = _basis.combine(_basis.derivative_matrix(n), columns)
         tested_jump = jnp.asarray(_basis.test_scale(n), dtype) * signs
         z0 = jnp.concatenate([q0, p0])
-        return derivative + tested_jump[:, None] * jump[None, :] - h * tested_field(H, self.quadrature, z0, a, False, n)
+        field = tested_field(H, self.quadrature, z0, a, False, n, part)
+        return derivative + tested_jump[:, None] * jump[None, :] - h * field
 
     def increment(self, H, q0, p0, a, h):
         """z_1 - z_0 = z^h(1) - z_0 = sum_j a_j, split into (dq, dp)."""

@@ -35,9 +35,10 @@ def nan_if_failed(x, status):
 def element_residual(H):
     """``(Z, params) -> R``, the element equations with everything they depend on in ``params``.
 
-    A partitioned method of more than ``SMALL`` unknowns (columns q | p) is solved through
-    the residual of its Gauss-Seidel sweep, ``R~ = Z - G(Z)``: G first updates the p columns
-    from R_p(Z), then the q columns from R_q at that update. R~ has R's roots, and its
+    A partitioned method (unknowns q | p along its ``partition_axis``, and a ``residual(...,
+    part=)`` of either half) with a fixed point and more than ``SMALL`` unknowns is solved
+    through the residual of its Gauss-Seidel sweep, ``R~ = Z - G(Z)``: G first updates the p
+    half from R_p(Z), then the q half from R_q at that update. R~ has R's roots, and its
     fixed-point iteration ``Z <- G(Z)`` contracts at about the square of the rate of
     ``Z <- Z - R(Z)`` (for separable H, T(p) + V(q), exactly two of its updates in one,
     for the arithmetic of one). Small systems keep R: their cost is the loop's kernels,
@@ -47,12 +48,13 @@ def element_residual(H):
     def fn(Z, params):
         method, q0, p0, h, args = params
         H_bound = bind_args(H, args)
-        if not (getattr(method, "partitioned", False) and Z.size > SMALL):
+        axis = getattr(method, "partition_axis", None)
+        if axis is None or not method.fixed_point or Z.size <= SMALL:
             return method.residual(H_bound, q0, p0, Z, h)
         r_p = method.residual(H_bound, q0, p0, Z, h, part="p")
-        Z_q, Z_p = jnp.split(Z, 2, axis=-1)
-        r_q = method.residual(H_bound, q0, p0, jnp.concatenate([Z_q, Z_p - r_p], axis=-1), h, part="q")
-        return jnp.concatenate([r_q, r_p], axis=-1)
+        Z_q, Z_p = jnp.split(Z, 2, axis=axis)
+        r_q = method.residual(H_bound, q0, p0, jnp.concatenate([Z_q, Z_p - r_p], axis=axis), h, part="q")
+        return jnp.concatenate([r_q, r_p], axis=axis)
 
     return fn
 
