@@ -8,9 +8,13 @@ few scenes (the FPUT chain, Kepler, a batch of Kepler orbits, a stiff linear cha
 ``krylov=True``) this measures microseconds per element (compiled ahead, best of five calls;
 states only returned, so no error estimate), Newton iterations and batch updates per element,
 and the number of kernels in the body of every while loop of the compiled program, read from
-its HLO: the fixed-point block, the Newton loops and the element. Writes results/solver.json.
+its HLO: the fixed-point block, the Newton loops and the element. The chain's rows run
+twice: with the Gauss-Seidel sweep of partitioned methods (the library's default above 32
+unknowns) and with the plain fixed point ``Z <- Z - R(Z)`` (the sweep's size threshold raised
+for that row), an A/B in one run. Writes results/solver.json.
 """
 
+import contextlib
 import pathlib
 import re
 import sys
@@ -24,7 +28,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import galerkin_jax as gj  # noqa: E402
 from _common import best_time, compiled, write  # noqa: E402
-from galerkin_jax import scenes  # noqa: E402
+from galerkin_jax import _march, scenes  # noqa: E402
 
 NOT_KERNELS = ("get-tuple-element", "constant", "bitcast", "parameter", "tuple")
 
@@ -57,6 +61,8 @@ CASES = {  # name: (H, q0, p0, method, h, n_steps, members, options)
     "FPUT N = 64, cG(1) + midpoint": (scenes.fput(64), gj.CG(1, gj.midpoint()), 0.05, 10_000, 1, {}),
     "FPUT N = 64, cG(3) + Gauss 3": (scenes.fput(64), gj.CG(3, gj.gauss_legendre(3)), 0.05, 10_000, 1, {}),
     "FPUT N = 512, cG(3) + Gauss 3": (scenes.fput(512), gj.CG(3, gj.gauss_legendre(3)), 0.05, 2_000, 1, {}),
+    "FPUT N = 64, GalerkinVI(3) + Gauss 3": (scenes.fput(64), gj.GalerkinVI(3, gj.gauss_legendre(3)), 0.05, 10_000,
+                                             1, {}),
     "Kepler e = 0.6, cG(3) + Gauss 3, h = 0.01": (scenes.kepler(0.6), gj.CG(3, gj.gauss_legendre(3)), 0.01, 20_000,
                                                   1, {}),
     "Kepler e = 0.6, cG(6) + Gauss 6, h = 0.1": (scenes.kepler(0.6), gj.CG(6, gj.gauss_legendre(6)), 0.1, 2_000, 1, {}),
@@ -97,8 +103,23 @@ def measure(name, scene, method, h, n_steps, members, options):
     return row
 
 
+@contextlib.contextmanager
+def plain_fixed_point():
+    """The Gauss-Seidel sweep off: no system is above its size threshold while this lasts."""
+    saved, _march.SMALL = _march.SMALL, 2**62
+    try:
+        yield
+    finally:
+        _march.SMALL = saved
+
+
 def main():
-    rows = {name: measure(name, *case) for name, case in CASES.items()}
+    rows = {}
+    for name, case in CASES.items():
+        rows[name] = measure(name, *case)
+        if name.startswith("FPUT"):
+            with plain_fixed_point():
+                rows[name + ", plain fixed point"] = measure(name + ", plain fixed point", *case)
     write("solver", {"rows": rows})
 
 
