@@ -9,9 +9,9 @@ few scenes (the FPUT chain, Kepler, a batch of Kepler orbits, a stiff linear cha
 states only returned, so no error estimate), Newton iterations and batch updates per element,
 and the number of kernels in the body of every while loop of the compiled program, read from
 its HLO: the fixed-point block, the Newton loops and the element. The chain's rows run
-twice: with the Gauss-Seidel sweep of partitioned methods (the library's default above 32
-unknowns) and with the plain fixed point ``Z <- Z - R(Z)`` (the sweep's size threshold raised
-for that row), an A/B in one run. Writes results/solver.json.
+twice: with the Gauss-Seidel sweep of partitioned methods (the library's default for states
+of more than 8 degrees of freedom) and with the plain fixed point ``Z <- Z - R(Z)`` (the
+sweep's threshold raised for that row), an A/B in one run. Writes results/solver.json.
 """
 
 import contextlib
@@ -105,12 +105,15 @@ def measure(name, scene, method, h, n_steps, members, options):
 
 @contextlib.contextmanager
 def plain_fixed_point():
-    """The Gauss-Seidel sweep off: no system is above its size threshold while this lasts."""
-    saved, _march.SMALL = _march.SMALL, 2**62
+    """The Gauss-Seidel sweep off: no system is above its size threshold while this lasts (the
+    caches cleared on both sides, so that no program traced with the other threshold is reused)."""
+    saved, _march.SWEEP_DIMENSION = _march.SWEEP_DIMENSION, 2**62
+    jax.clear_caches()
     try:
         yield
     finally:
-        _march.SMALL = saved
+        _march.SWEEP_DIMENSION = saved
+        jax.clear_caches()
 
 
 def main():

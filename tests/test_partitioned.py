@@ -1,7 +1,8 @@
 """The Gauss-Seidel sweep of partitioned methods (``_march.element_residual``).
 
-A partitioned method of more than ``SMALL`` unknowns is solved through R~ = Z - G(Z), G the
-sweep that updates the p columns from R_p(Z), then the q columns from R_q at that update.
+A partitioned method on a state of more than ``SWEEP_DIMENSION`` degrees of freedom is solved
+through R~ = Z - G(Z), G the sweep that updates the p columns from R_p(Z), then the q columns
+from R_q at that update.
 For a separable quadratic H the Jacobi iteration matrix I - dR/dZ couples q only to p and p
 only to q: it is 2-cyclic, and by Young's theorem the sweep's matrix I - dR~/dZ has exactly
 the squared spectral radius. R~ must have R's roots: a step equals Newton on R itself.
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 import galerkin_jax as gj
-from galerkin_jax import _march, _solve, scenes
+from galerkin_jax import _march, scenes
 
 METHODS = [gj.CG(1, gj.midpoint()), gj.CG(3, gj.gauss_legendre(3)), gj.CG(2, gj.gauss_lobatto(3)),
            gj.DG(0, gj.gauss_legendre(1)), gj.GalerkinVI(2, gj.gauss_legendre(2))]
@@ -46,16 +47,16 @@ def radius(M):
 def test_sweep_contracts_at_the_square_of_the_jacobi_rate(method):
     H, q0, p0 = linear_chain()
     jacobi, sweep = iteration_matrices(method, H, q0, p0, h=0.2)
-    assert method.initial_guess(q0, p0).size > _solve.SMALL
+    assert q0.shape[0] > _march.SWEEP_DIMENSION
     rho = radius(jacobi)
     assert 0.05 < rho < 1.0  # a rate worth squaring, below 1
     # Young's theorem holds exactly; the eigenvalues' round-off is ~1e-15
     assert radius(sweep) == pytest.approx(rho**2, rel=1e-10)
 
 
-def test_small_systems_keep_the_plain_residual():
-    H, q0, p0 = linear_chain(n=4)
-    method = gj.CG(2, gj.gauss_legendre(2))  # 16 unknowns
+def test_small_states_keep_the_plain_residual():
+    H, q0, p0 = linear_chain(n=_march.SWEEP_DIMENSION)
+    method = gj.CG(6, gj.gauss_legendre(6))  # 96 unknowns, but a state of 8
     jacobi, sweep = iteration_matrices(method, H, q0, p0, h=0.2)
     np.testing.assert_array_equal(jacobi, sweep)
 
