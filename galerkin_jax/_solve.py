@@ -14,9 +14,9 @@ Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
   pays for one. A member leaves it when it contracts at a rate above 1/2 or takes too many
   iterations in one element (the predictor's error and the rate together decide the cost).
   A large batch iterates its stragglers, its last eighth to converge, gathered apart.
-  Partitioned methods of more than ``SMALL`` unknowns hand this solver the residual of their
-  Gauss-Seidel sweep (``_march.element_residual``), whose fixed point contracts at the
-  square of the plain one's rate.
+  Partitioned methods on states of more than ``_march.SWEEP_DIMENSION`` degrees of freedom
+  hand this solver the residual of their Gauss-Seidel sweep (``_march.element_residual``),
+  whose fixed point contracts at the square of the plain one's rate.
   A method whose residual's Jacobian at h = 0 is not I (dG(k >= 1)) has no fixed point and
   solves every element by Newton.
 * The Newton phase: ``K`` the inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and

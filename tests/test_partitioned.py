@@ -2,10 +2,10 @@
 
 A partitioned method on a state of more than ``SWEEP_DIMENSION`` degrees of freedom is solved
 through R~ = Z - G(Z), G the sweep that updates the p columns from R_p(Z), then the q columns
-from R_q at that update.
-For a separable quadratic H the Jacobi iteration matrix I - dR/dZ couples q only to p and p
-only to q: it is 2-cyclic, and by Young's theorem the sweep's matrix I - dR~/dZ has exactly
-the squared spectral radius. R~ must have R's roots: a step equals Newton on R itself.
+from R_q at that update. For a separable quadratic H the Jacobi iteration matrix I - dR/dZ
+couples q only to p and p only to q: it is 2-cyclic, and by Young's theorem the sweep's
+matrix I - dR~/dZ has exactly the squared spectral radius. R~ must have R's roots: a step
+equals Newton on R itself.
 """
 
 import jax
