@@ -31,21 +31,21 @@ def check_rule(cls, quadrature):
         raise TypeError(f"{cls} needs a QuadratureRule, got {type(quadrature).__name__}.")
 
 
-def tested_field(H, quadrature, z0, C, antiderivative, n_test, part=None):
+def tested_field(H, quadrature, q0, p0, C, antiderivative, n_test, part=None):
     """(2i + 1) sum_l w_l P_i(alpha_l) J DH(z^h(alpha_l)), i < n_test: the DH integrals of eqs. (16), (19).
 
-    ``z^h = z0 + basis(alpha) @ C`` with ``basis`` the Legendre antiderivatives (cG) or the
+    ``z^h = (q0, p0) + basis(alpha) @ C`` with ``basis`` the Legendre antiderivatives (cG) or the
     Legendre polynomials themselves (dG); ``part`` "q" or "p": the q or p half alone
     (``hamilton_field``).
     """
-    dtype, d = C.dtype, z0.shape[0] // 2
+    dtype, d = C.dtype, q0.shape[0]
     alpha = jnp.asarray(quadrature.points, dtype)
     w = jnp.asarray(quadrature.weights, dtype)
     basis = _basis.legendre_antiderivatives(alpha, len(C)) if antiderivative else _basis.legendre_values(alpha, len(C))
     # q and p at the points from C's column halves: where C is a concatenate of halves (the
     # sweep), XLA then reads them directly instead of copying them together and apart
     at_points = lambda x0, X: x0[None, :] + _basis.combine(basis, X)
-    field = jax.vmap(hamilton_field(H, part))(at_points(z0[:d], C[:, :d]), at_points(z0[d:], C[:, d:]))
+    field = jax.vmap(hamilton_field(H, part))(at_points(q0, C[:, :d]), at_points(p0, C[:, d:]))
     scale = jnp.asarray(_basis.test_scale(n_test), dtype)
     return scale[:, None] * _basis.combine(_basis.legendre_values(alpha, n_test).T, w[:, None] * field)
 
@@ -92,8 +92,7 @@ class CG:
     def residual(self, H, q0, p0, C, h, part=None):
         """R(C) = 0 is eq. (16) tested with (2i + 1) P_i, i < k: C_i - h (2i+1) Q[P_i J DH(z^h)];
         ``part`` "q" or "p": the equations of that half of the columns alone."""
-        z0 = jnp.concatenate([q0, p0])
-        return _columns(C, q0.shape[0], part) - h * tested_field(H, self.quadrature, z0, C, True, self.k, part)
+        return _columns(C, q0.shape[0], part) - h * tested_field(H, self.quadrature, q0, p0, C, True, self.k, part)
 
     def increment(self, H, q0, p0, C, h):
         """z_1 - z_0 = z^h(1) - z_0 = C_0, split into (dq, dp)."""
@@ -153,8 +152,7 @@ class DG:
         jump = signs @ columns  # z^h(0) - z_0
         derivative = _basis.combine(_basis.derivative_matrix(n), columns)
         tested_jump = jnp.asarray(_basis.test_scale(n), dtype) * signs
-        z0 = jnp.concatenate([q0, p0])
-        field = tested_field(H, self.quadrature, z0, a, False, n, part)
+        field = tested_field(H, self.quadrature, q0, p0, a, False, n, part)
         return derivative + tested_jump[:, None] * jump[None, :] - h * field
 
     def increment(self, H, q0, p0, a, h):
