@@ -238,8 +238,8 @@ class _Problem:
 # flags cost 3-10 % of a step, one float array for all 5-40 %, measured). A batch keeps them
 # apart: a packed group is a concatenate, whose per-element indexing XLA does not vectorise.
 _GROUPS = {"floats": ("damping", "step", "rate", "r_size"),
-           "ints": ("newton", "fresh", "asked", "active", "iterations", "status", "since")}
-_FLAGS = ("newton", "fresh", "asked", "active")
+           "ints": ("newton", "fresh", "current", "asked", "active", "iterations", "status", "since")}
+_FLAGS = ("newton", "fresh", "current", "asked", "active")
 
 
 def _pack(c):
@@ -292,7 +292,7 @@ def _block(problem, c, inverse, size):
     c = _unpack(c)
     n, dtype = c["Z"][0].size, c["Z"].dtype
     eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
-    Z0, r0, newton, fresh, damping = c["Z"], c["r"], c["newton"], c["fresh"], c["damping"]
+    Z0, r0, newton, fresh, current, damping = c["Z"], c["r"], c["newton"], c["fresh"], c["current"], c["damping"]
     mode = newton if inverse is not None else ~newton
     moving = _live(problem, c) & ~c["asked"] & mode  # members that asked wait for their matrix
     Z, r, steps = Z0, r0, []
@@ -330,11 +330,13 @@ def _block(problem, c, inverse, size):
     stalled = ((~stale & (rate >= 1.0) & (step <= floor)) | (noisy & grown)) & (c["r_size"] <= floor)
     done = moving & (accept_here | stalled)
     going = moving & ~done
-    rejected = going & stale & (bad | (rate > 1.0))
-    # a Newton step with a fresh K that does not lower the residual is halved (far from the
-    # root, e.g. at h omega ~ 1, Newton's full steps can wander)
-    backtrack = going & ~stale & (bad | (r_size >= c["r_size"])) & ~noisy & (damping > 1.0 / 64)
-    failed = going & ~stale & bad & ~backtrack
+    # a Newton step that does not lower the residual is halved with a K taken at its start
+    # (far from the root, e.g. at h omega ~ 1, Newton's full steps can wander; only there is
+    # the Newton direction one in which the residual falls), else undone for such a K
+    lowered = ~bad & (r_size < c["r_size"])
+    backtrack = going & ~stale & current & ~lowered & ~noisy & (damping > 1.0 / 64)
+    rejected = going & ((stale & (bad | (rate > 1.0))) | (~stale & ~current & ~lowered & ~noisy))
+    failed = going & ~stale & current & bad & ~backtrack
     take = (done & accept_here) | (going & ~rejected & ~failed & ~backtrack)
     # computed once: without the barrier XLA repeats the decisions above in every fusion
     # that reads them (the selects below, the packed carries), which costs more than the rest
@@ -355,6 +357,7 @@ def _block(problem, c, inverse, size):
     return _pack(dict(
         c, **counted, Z=_select(accepted, polished, _select(take, Z, Z0)), r=_select(take, r, r0),
         asked=asked, active=(c["active"] & ~moving) | (going & ~failed),
+        current=current if inverse is KRYLOV else current & ~take,  # a Krylov direction is always new
         damping=jnp.where(backtrack, 0.5 * damping, jnp.where(take, jnp.minimum(1.0, 2.0 * damping), damping)),
         step=jnp.where(moving, jnp.where(restart, jnp.nan, step), c["step"]),
         rate=jnp.where(moving, jnp.where(restart, jnp.nan, rate), c["rate"]),
@@ -413,7 +416,7 @@ def _gathered(problem, c, which, capacity, solve):
 def _served(c, served):
     """The members ``served`` a fresh Newton matrix: Newton mode, full steps, a new rate, the
     patience counted from here."""
-    return dict(c, newton=c["newton"] | served, fresh=c["fresh"] | served, damping=jnp.where(served, 1.0, c["damping"]),
+    return dict(c, newton=c["newton"] | served, fresh=c["fresh"] | served, current=c["current"] | served, damping=jnp.where(served, 1.0, c["damping"]),
                 asked=c["asked"] & ~served, step=jnp.where(served, jnp.nan, c["step"]),
                 rate=jnp.where(served, jnp.nan, c["rate"]), since=jnp.where(served, c["iterations"], c["since"]))
 
@@ -504,7 +507,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     newton = matrix.newton > 0
     asked = newton & matrix.pending & ok & ~skip
     zero = jnp.zeros(B, jnp.int32)
-    c = dict(Z=Z, r=r, newton=newton, fresh=newton if krylov else false, asked=asked,
+    c = dict(Z=Z, r=r, newton=newton, fresh=newton if krylov else false, current=newton if krylov else false, asked=asked,
              damping=jnp.ones(B, dtype), step=nan, rate=nan, r_size=r_size, active=ok & ~skip, iterations=zero,
              since=zero, status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
     if B > 1:
