@@ -22,8 +22,9 @@ Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
 * The Newton phase: ``K`` the inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and
   kept across elements (the simplified Newton method, as in Hairer and Wanner's Radau5), one
   checked update at a time. A member refreshes its matrix when it contracts too slowly or an
-  update goes astray (the update is rejected), and halves a full Newton step that does not
-  lower the residual. A system too large for a dense matrix (more than ``DENSE_LIMIT``
+  update goes astray (the update is rejected). A Newton step that does not lower the residual
+  is halved if the matrix was taken at the step's start (``current``), else undone and the
+  matrix refreshed there (damped Newton far from the root, simplified Newton near it). A system too large for a dense matrix (more than ``DENSE_LIMIT``
   unknowns) has Newton only with ``Options.krylov``: every update a fresh Newton direction,
   by GMRES on Jacobian-vector products (Newton-Krylov; its cost follows the Hessian's
   sparsity, not n^3). A small system that switched stays with Newton (its Newton update costs
