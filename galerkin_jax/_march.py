@@ -116,19 +116,22 @@ def _extrapolated(misses, m):
     return sum((-1.0) ** j * math.comb(m, j + 1) * misses[j] for j in range(m))
 
 
-def miss_correction(misses, miss):
-    """``(misses, correction)``: the history with this element's ``miss`` of its continued
+def miss_correction(misses, miss, n):
+    """``(misses, correction)``: the history with element n's ``miss`` of its continued
     polynomial first, and the next element's correction of its continuation. The miss varies
     smoothly from element to element, so the correction extrapolates it from the last misses,
     by the one of the ``MISS_ORDERS`` that would have come closer to this element's miss. For a
     mode of frequency omega, extrapolation of order m leaves |2 sin(h omega / 2)|^m of the
     miss, less the higher m while h omega is small; where the misses are not smooth in h
-    (h omega ~ 1, a sharp turn of a nonlinear orbit) the low order does better. The history
-    starts at zero, so the first few elements' extrapolations are off (and mostly turned down)."""
+    (h omega ~ 1, a sharp turn of a nonlinear orbit) the low order does better. Element 0 has
+    no real miss (nothing was continued), so an order competes once its test is made of real
+    ones; before any does, the lowest order, and before that the last miss or nothing."""
     latest = jnp.concatenate([miss[None], misses[:-1]])  # shifted: cheaper than a ring written in place
-    misses_of = jnp.stack([miss - _extrapolated(misses, m) for m in MISS_ORDERS])
-    best = jnp.argmin(jnp.sum(misses_of.reshape(len(MISS_ORDERS), -1) ** 2, axis=1))
-    return latest, sum(jnp.where(best == i, _extrapolated(latest, m), 0.0) for i, m in enumerate(MISS_ORDERS))
+    errors = jnp.sum(jnp.stack([miss - _extrapolated(misses, m) for m in MISS_ORDERS]).reshape(len(MISS_ORDERS), -1) ** 2,
+                     axis=1)
+    best = jnp.argmin(jnp.where(n > jnp.asarray(MISS_ORDERS), errors, jnp.inf))  # the first, while none competes
+    correction = sum(jnp.where(best == i, _extrapolated(latest, m), 0.0) for i, m in enumerate(MISS_ORDERS))
+    return latest, jnp.where(n >= 2, correction, jnp.where(n == 1, miss, 0.0))
 
 
 # the run's counters, carried as one int32 array (one fused kernel per element, not four);
@@ -187,7 +190,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         status = jnp.where(failed, counters[_AT["status"]], status)  # the first failure is kept
         ok = status == Status.SUCCESS
         now = jax.tree.map(lambda a, b: jnp.where(ok, b, a), start, dict(z=z1, z_prev=z, Z_prev=Z, scale=scale))
-        misses, correction = miss_correction(c["misses"], Z - continued)
+        misses, correction = miss_correction(c["misses"], Z - continued, c["done"])
         acc = c["acc"] if observe is None else observe(c["acc"], *split(now["z"]))
         counters = jnp.stack([status, counters[_AT["total"]] + iterations,
                               jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips])

@@ -32,10 +32,10 @@ def test_the_correction_takes_the_order_that_came_closer():
     t = np.arange(8, dtype=float)[::-1]
     smooth = 1e-3 * (t**5 - 3 * t**2 + t)
     history, latest = jnp.asarray(smooth[2:]), jnp.asarray(smooth[1])
-    _, correction = _march.miss_correction(history, latest)
+    _, correction = _march.miss_correction(history, latest, 10)
     assert float(correction) == pytest.approx(smooth[0], rel=1e-12)
     jump = 2 * smooth[2] - smooth[3]  # exactly the linear extrapolation's guess
-    _, correction = _march.miss_correction(history, jnp.asarray(jump))
+    _, correction = _march.miss_correction(history, jnp.asarray(jump), 10)
     assert float(correction) == pytest.approx(2 * jump - smooth[2], rel=1e-12)
 
 
