@@ -127,8 +127,8 @@ def miss_correction(misses, miss, n):
     no real miss (nothing was continued), so an order competes once its test is made of real
     ones; before any does, the lowest order, and before that the last miss or nothing."""
     latest = jnp.concatenate([miss[None], misses[:-1]])  # shifted: cheaper than a ring written in place
-    errors = jnp.sum(jnp.stack([miss - _extrapolated(misses, m) for m in MISS_ORDERS]).reshape(len(MISS_ORDERS), -1) ** 2,
-                     axis=1)
+    backtests = jnp.stack([miss - _extrapolated(misses, m) for m in MISS_ORDERS])
+    errors = jnp.sum(backtests.reshape(len(MISS_ORDERS), -1) ** 2, axis=1)
     best = jnp.argmin(jnp.where(n > jnp.asarray(MISS_ORDERS), errors, jnp.inf))  # the first, while none competes
     correction = sum(jnp.where(best == i, _extrapolated(latest, m), 0.0) for i, m in enumerate(MISS_ORDERS))
     return latest, jnp.where(n >= 2, correction, jnp.where(n == 1, miss, 0.0))
@@ -194,8 +194,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         acc = c["acc"] if observe is None else observe(c["acc"], *split(now["z"]))
         counters = jnp.stack([status, counters[_AT["total"]] + iterations,
                               jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips])
-        new = dict(c, **now, comp=comp, misses=misses,
-                   correction=correction, matrix=matrix,
+        new = dict(c, **now, comp=comp, misses=misses, correction=correction, matrix=matrix,
                    counters=counters.astype(jnp.int32), done=c["done"] + 1,
                    estimate=jnp.maximum(c["estimate"], local), acc=acc)
         if progress:

@@ -24,14 +24,15 @@ Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
   checked update at a time. A member refreshes its matrix when it contracts too slowly or an
   update goes astray (the update is rejected). A Newton step that does not lower the residual
   is halved if the matrix was taken at the step's start (``current``), else undone and the
-  matrix refreshed there (damped Newton far from the root, simplified Newton near it). A system too large for a dense matrix (more than ``DENSE_LIMIT``
-  unknowns) has Newton only with ``Options.krylov``: every update a fresh Newton direction,
-  by GMRES on Jacobian-vector products (Newton-Krylov; its cost follows the Hessian's
-  sparsity, not n^3). A small system that switched stays with Newton (its Newton update costs
-  two to three fixed-point ones); a large one, whose update costs a product with an n x n
-  matrix or a Krylov solve, for ``NEWTON_STRETCH`` elements, then tries the fixed point again
-  (one hard element does not cost it the run). Small systems solve a run's first element by
-  Newton: the predictor has no history yet.
+  matrix refreshed there (damped Newton far from the root, simplified Newton near it). A
+  system too large for a dense matrix (more than ``DENSE_LIMIT`` unknowns) has Newton only
+  with ``Options.krylov``: every update a fresh Newton direction, by GMRES on Jacobian-vector
+  products (Newton-Krylov; its cost follows the Hessian's sparsity, not n^3). A small system
+  that switched stays with Newton (its Newton update costs two to three fixed-point ones); a
+  large one, whose update costs a product with an n x n matrix or a Krylov solve, for
+  ``NEWTON_STRETCH`` elements, then tries the fixed point again (one hard element does not
+  cost it the run). Small systems solve a run's first element by Newton: the predictor has no
+  history yet.
 
 The loop's cost is mostly per check, not per update: the decisions, the sizes and the loop's
 trip are each a kernel that XLA's CPU runtime launches on its own. A block of two fixed-point
@@ -417,9 +418,10 @@ def _gathered(problem, c, which, capacity, solve):
 def _served(c, served):
     """The members ``served`` a fresh Newton matrix: Newton mode, full steps, a new rate, the
     patience counted from here."""
-    return dict(c, newton=c["newton"] | served, fresh=c["fresh"] | served, current=c["current"] | served, damping=jnp.where(served, 1.0, c["damping"]),
-                asked=c["asked"] & ~served, step=jnp.where(served, jnp.nan, c["step"]),
-                rate=jnp.where(served, jnp.nan, c["rate"]), since=jnp.where(served, c["iterations"], c["since"]))
+    return dict(c, newton=c["newton"] | served, fresh=c["fresh"] | served, current=c["current"] | served,
+                damping=jnp.where(served, 1.0, c["damping"]), asked=c["asked"] & ~served,
+                step=jnp.where(served, jnp.nan, c["step"]), rate=jnp.where(served, jnp.nan, c["rate"]),
+                since=jnp.where(served, c["iterations"], c["since"]))
 
 
 def _refresh(problem, c, inverse):
@@ -508,9 +510,10 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     newton = matrix.newton > 0
     asked = newton & matrix.pending & ok & ~skip
     zero = jnp.zeros(B, jnp.int32)
-    c = dict(Z=Z, r=r, newton=newton, fresh=newton if krylov else false, current=newton if krylov else false, asked=asked,
-             damping=jnp.ones(B, dtype), step=nan, rate=nan, r_size=r_size, active=ok & ~skip, iterations=zero,
-             since=zero, status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
+    c = dict(Z=Z, r=r, newton=newton, fresh=newton if krylov else false, current=newton if krylov else false,
+             asked=asked, damping=jnp.ones(B, dtype), step=nan, rate=nan, r_size=r_size, active=ok & ~skip,
+             iterations=zero, since=zero,
+             status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
     if B > 1:
         c["trips"] = jnp.int32(0)  # the batch's updates; a run alone's are its iterations
     c = _fixed_point(problem, _pack(c))

@@ -39,6 +39,22 @@ def test_the_correction_takes_the_order_that_came_closer():
     assert float(correction) == pytest.approx(2 * jump - smooth[2], rel=1e-12)
 
 
+def test_an_order_competes_only_once_its_backtest_is_made_of_real_misses():
+    """The history starts at zeros and element 0's miss is not real (nothing was continued).
+    Misses s_n = c (n + 1)(n + 2)...(n + 5) continue the zeros as a polynomial of degree 5, so
+    order 6 wins every backtest against them; yet element 0 gets no correction, element 1 its
+    miss, elements 2 to 6 the linear extrapolation (off by O(c n^3)), and only from element 7,
+    whose order-6 backtest is made of real misses, the exact order-6 one."""
+    s = lambda n: 1e-3 * math.prod(n + i for i in range(1, 6))
+    history = jnp.zeros(max(_march.MISS_ORDERS))
+    for n in range(10):
+        history, correction = _march.miss_correction(history, jnp.asarray(s(n)), n)
+        expected = 0.0 if n == 0 else s(1) if n == 1 else 2 * s(n) - s(n - 1) if n <= 6 else s(n + 1)
+        assert float(correction) == pytest.approx(expected, rel=1e-12, abs=1e-18), n
+        if 2 <= n <= 6:
+            assert abs(expected - s(n + 1)) > 0.1  # the gate decided: order 6 would have been exact
+
+
 def iterations(scene, method, h, n_steps, orders):
     """Iterations per element and the solution with the predictor's ``MISS_ORDERS`` set to
     ``orders`` (JAX's caches cleared on both sides: the orders are read when a run is traced)."""
