@@ -52,9 +52,10 @@ def test_iterations_per_element_with_the_extrapolating_predictor():
     """The first element of a small system is solved by Newton from the constant state, the
     next ones by the fixed point from the extrapolating predictor, unless that takes more than
     12 iterations or contracts at a rate above 0.5. Linear scene (h omega = 0.35): the fixed
-    point contracts at 0.18, the second element takes 15 iterations, and the run switches to
-    Newton for good, which then takes 1 solve + 1 confirming iteration (measured mean 2.26,
-    max 15). Kepler, h = 0.05: the fixed point, measured mean 7.23, max 16 (perihelion). The
+    point contracts at 0.18, the second element takes 14 iterations, and the run switches to
+    Newton for good, which then takes 1 solve + 1 confirming iteration (measured mean 2.24,
+    max 14). Kepler, h = 0.05: the fixed point, measured mean 6.05, max 12 (perihelion; 7.23
+    and 16 with the linear extrapolation of the predictor's misses alone). The
     quartic scene of [GBS, Fig. 4.6] (h omega ~ 1 at h = 0.01, omega^2 = V''(2) / m = 11000,
     where no polynomial predictor is accurate) with dG(1), whose Jacobian at h = 0 is not I,
     so that the fixed point cannot contract: Newton, measured mean 5.8, max 8."""
