@@ -97,8 +97,8 @@ def compensated_add(x, dx, c):
 
 
 # the orders of extrapolation of the continuation's misses the predictor chooses from
-# (``miss_correction``): 6 took FPUT cG(1) from 8.0 to 6.6 iterations per element, Kepler
-# cG(3) at h = 0.01 from 4.2 to 2.4; 2 (linear) rescues the discrete gradient's quartic scene
+# (``miss_correction``): 6 where the misses are smooth, 2 (linear) where they are not (the
+# discrete gradient's quartic scene); the figures are in the README's predictor bullet
 MISS_ORDERS = (2, 6)
 
 

@@ -334,11 +334,12 @@ def _block(problem, c, inverse, size):
     going = moving & ~done
     # a Newton step that does not lower the residual is halved with a K taken at its start
     # (far from the root, e.g. at h omega ~ 1, Newton's full steps can wander; only there is
-    # the Newton direction one in which the residual falls), else undone for such a K
+    # the Newton direction one in which the residual falls), else undone for such a K.
+    # ``current`` implies a fresh Newton K (``_served`` sets all three), so not ``stale``.
     lowered = ~bad & (r_size < c["r_size"])
-    backtrack = going & ~stale & current & ~lowered & ~noisy & (damping > 1.0 / 64)
+    backtrack = going & current & ~lowered & ~noisy & (damping > 1.0 / 64)
     rejected = going & ((stale & (bad | (rate > 1.0))) | (~stale & ~current & ~lowered & ~noisy))
-    failed = going & ~stale & current & bad & ~backtrack
+    failed = going & current & bad & ~backtrack
     take = (done & accept_here) | (going & ~rejected & ~failed & ~backtrack)
     # computed once: without the barrier XLA repeats the decisions above in every fusion
     # that reads them (the selects below, the packed carries), which costs more than the rest
