@@ -10,8 +10,9 @@ Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
 
 * The fixed-point phase: ``K = I``, the fixed-point iteration of ``Z = h Phi(Z)`` (every method
   whose residual has Jacobian I at h = 0), in blocks of ``FIXED_POINT_BLOCK`` updates checked
-  once at the block's end. Its loop carries no matrix, so a run that never needs Newton never
-  pays for one. A member leaves it when it contracts at a rate above 1/2 or takes too many
+  once at the block's end; a system of more than ``SMALL`` unknowns starts each element with a
+  block of ``FIRST_BLOCK`` (it needs four to six updates, and a check costs several kernels).
+  Its loop carries no matrix, so a run that never needs Newton never pays for one. A member leaves it when it contracts at a rate above 1/2 or takes too many
   iterations in one element (the predictor's error and the rate together decide the cost).
   A large batch iterates its stragglers, its last eighth to converge, gathered apart.
   Partitioned methods on states of more than ``_march.SWEEP_DIMENSION`` degrees of freedom
@@ -39,7 +40,8 @@ trip are each a kernel that XLA's CPU runtime launches on its own. A block of tw
 updates costs little more than one; a rejected block is undone as a whole.
 
 Stopping rule: a member stops when the error left after its update, ``|dZ| theta / (1 - theta)``
-(theta the contraction rate), is below the round-off ``eps |Z|`` of the unknowns, or when its
+(theta the contraction rate: a block's last two updates' ratio, or in Newton's one update per
+check the largest ratio of the element), is below the round-off ``eps |Z|`` of the unknowns, or when its
 updates stop shrinking: at the round-off of the state whatever K (there also when they still
 shrink, by less than half, past the member's patience), below ``sqrt(eps)`` of the state only
 with a fresh Newton matrix (the floor of an ill-conditioned system). A growing
@@ -102,6 +104,7 @@ PATIENCE_FIXED_POINT = (12, 24)  # ... and a fixed-point member switches to Newt
 NEWTON_STRETCH = 16  # elements a large system that switched to Newton stays with it
 ALWAYS = 2**30  # elements of Newton: for good
 FIXED_POINT_BLOCK = 2  # fixed-point updates per check (module docstring)
+FIRST_BLOCK = 4  # ... in an element's first check, for a system of more than SMALL unknowns
 STRAGGLERS = 8  # a batch gathers its last 1 / STRAGGLERS moving members (``_fixed_point``)
 # GMRES for a Newton-Krylov direction: a relative residual of 1e-7 leaves 1e-7 of the error per
 # update, so the updates reach the floor in 2 or 3; restarts of 20, at most 200 products
@@ -117,10 +120,12 @@ class Options:
         krylov: Newton by GMRES on Jacobian-vector products (``_Problem.newton_krylov``) for
             systems of more than ``DENSE_LIMIT`` unknowns, which otherwise have the fixed point
             only. Stiff large systems (h omega >~ 1) need it; it compiles about a second longer.
+        fixed_point: the method has a fixed-point iteration (else every element is Newton's).
     """
 
     max_iterations: int
     krylov: bool = False
+    fixed_point: bool = True
 
 
 @pytree_dataclass
@@ -307,7 +312,9 @@ def _block(problem, c, inverse, size):
     before = measured[0] if size > 1 else c["step"]  # the update before the last, with this K
     bad = ~jnp.isfinite(step + r_size)
     rate = step / before  # NaN until a member has two updates with one K
-    theta = jnp.fmax(rate, c["rate"])
+    # the contraction rate: a block's last two updates' (the fixed point's rate is steady
+    # within an element), one update per check (Newton) the largest of the element's ratios
+    theta = rate if size > 1 else jnp.fmax(rate, c["rate"])
     floor = jnp.sqrt(eps) * (problem.scale + z_size + tiny)
     noisy = step <= 100.0 * eps * (problem.scale + z_size)  # updates this small are round-off, not a slow K
     # the error left after this update is below the round-off of the unknowns. (Allowing a
@@ -387,7 +394,9 @@ def _fixed_point(problem, c):
     def loop(problem, c):
         return blocks(problem, c, lambda c: jnp.any(moving(problem, c)))
 
-    B = c["Z"].shape[0]
+    B, n = c["Z"].shape[0], c["Z"][0].size
+    if n > SMALL:
+        c = _block(problem, c, None, FIRST_BLOCK)  # unconditional: a conditional costs more
     if B < 8 * STRAGGLERS:
         return loop(problem, c)
     capacity = B // STRAGGLERS
@@ -517,7 +526,9 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
              status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
     if B > 1:
         c["trips"] = jnp.int32(0)  # the batch's updates; a run alone's are its iterations
-    c = _fixed_point(problem, _pack(c))
+    c = _pack(c)
+    if options.fixed_point:
+        c = _fixed_point(problem, c)
     inverse = matrix.inverse
     if inverse is not None:
         c, inverse = _newton(problem, c, inverse)
