@@ -12,8 +12,9 @@ Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
   whose residual has Jacobian I at h = 0), in blocks of ``FIXED_POINT_BLOCK`` updates checked
   once at the block's end; a system of more than ``SMALL`` unknowns starts each element with a
   block of ``FIRST_BLOCK`` (it needs four to six updates, and a check costs several kernels).
-  Its loop carries no matrix, so a run that never needs Newton never pays for one. A member leaves it when it contracts at a rate above 1/2 or takes too many
-  iterations in one element (the predictor's error and the rate together decide the cost).
+  Its loop carries no matrix, so a run that never needs Newton never pays for one. A member
+  leaves it when it contracts at a rate above 1/2 or takes too many iterations in one element
+  (the predictor's error and the rate together decide the cost).
   A large batch iterates its stragglers, its last eighth to converge, gathered apart.
   Partitioned methods on states of more than ``_march.SWEEP_DIMENSION`` degrees of freedom
   hand this solver the residual of their Gauss-Seidel sweep (``_march.element_residual``),
@@ -41,10 +42,10 @@ updates costs little more than one; a rejected block is undone as a whole.
 
 Stopping rule: a member stops when the error left after its update, ``|dZ| theta / (1 - theta)``
 (theta the contraction rate: a block's last two updates' ratio, or in Newton's one update per
-check the largest ratio of the element), is below the round-off ``eps |Z|`` of the unknowns, or when its
-updates stop shrinking: at the round-off of the state whatever K (there also when they still
-shrink, by less than half, past the member's patience), below ``sqrt(eps)`` of the state only
-with a fresh Newton matrix (the floor of an ill-conditioned system). A growing
+check the largest ratio of the element), is below the round-off ``eps |Z|`` of the unknowns, or
+when its updates stop shrinking: at the round-off of the state whatever K (there also when
+they still shrink, by less than half, past the member's patience), below ``sqrt(eps)`` of the
+state only with a fresh Newton matrix (the floor of an ill-conditioned system). A growing
 update is never applied, and the residual at the accepted iterate must be below ``sqrt(eps)``
 of the state. An accepted iterate gets one more update from its residual, which is already
 known (a product, no residual). Iterating to the floor, not to a tolerance, and that last
