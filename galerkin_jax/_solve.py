@@ -555,9 +555,13 @@ def _fold(x, batched, axis_size):
 
 
 def _batched(fn, options):
+    # jitted so that its trace is cached: under vmap, scan's batching fixpoint calls the rule
+    # below twice with the same shapes, and each call would trace the whole iteration again
+    traced = jax.jit(functools.partial(_iterate, fn, options))
+
     @jax.custom_batching.custom_vmap
     def iterate(*args):
-        return _iterate(fn, options, *args)
+        return traced(*args)
 
     @iterate.def_vmap
     def rule(axis_size, in_batched, *args):
