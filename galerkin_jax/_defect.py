@@ -92,8 +92,7 @@ def local_error(H, q0, p0, W, increment, h):
     alpha = jnp.asarray(alpha, dtype)
     field = jax.vmap(symplectic_field(H))
     on_w = z0[None, :] + _basis.combine(_basis.legendre_values(alpha, J), W)
-    F = field(on_w)
-    tangent = lambda v: jax.jvp(field, (on_w,), (v,))[1]
+    F, tangent = jax.linearize(field, on_w)  # A = DF along w, traced once for the J + 1 sweeps
     defect = _basis.combine(_basis.legendre_derivatives(alpha, J), W) - h * F
     start_jump = _basis.combine((-1.0) ** np.arange(J), W)
 

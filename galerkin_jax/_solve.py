@@ -220,9 +220,10 @@ class _Problem:
         # only past 1e154, where a kinetic energy |p|^2 / 2 in H does too.
         float64 = jnp.finfo(self.scale.dtype).bits == 64
         object.__setattr__(self, "unit", None if float64 else jnp.where(self.scale > 0, self.scale, 1.0))
+        object.__setattr__(self, "_residual", jax.jit(jax.vmap(self.fn)))
 
     def residual(self, Z):
-        return jax.vmap(self.fn)(Z, self.params)
+        return self._residual(Z, self.params)
 
     def newton_krylov(self, Z, r):
         """``dR/dZ(Z)^{-1} r`` per member, by restarted GMRES on Jacobian-vector products: the
