@@ -220,6 +220,7 @@ class _Problem:
         # only past 1e154, where a kinetic energy |p|^2 / 2 in H does too.
         float64 = jnp.finfo(self.scale.dtype).bits == 64
         object.__setattr__(self, "unit", None if float64 else jnp.where(self.scale > 0, self.scale, 1.0))
+        # jitted: its ~10 call sites (start, blocks, Newton matrix) then reuse one trace
         object.__setattr__(self, "_residual", jax.jit(jax.vmap(self.fn)))
 
     def residual(self, Z):
@@ -314,8 +315,9 @@ def _block(problem, c, inverse, size):
     before = measured[0] if size > 1 else c["step"]  # the update before the last, with this K
     bad = ~jnp.isfinite(step + r_size)
     rate = step / before  # NaN until a member has two updates with one K
-    # the contraction rate: a block's last two updates' (the fixed point's rate is steady
-    # within an element), one update per check (Newton) the largest of the element's ratios
+    # the contraction rate: a block's last two updates' (an element's first ratio is its
+    # largest and would hold it back a block), one update per check (Newton): the largest
+    # of the element's ratios, as one ratio alone is noisy
     theta = rate if size > 1 else jnp.fmax(rate, c["rate"])
     floor = jnp.sqrt(eps) * (problem.scale + z_size + tiny)
     noisy = step <= 100.0 * eps * (problem.scale + z_size)  # updates this small are round-off, not a slow K
