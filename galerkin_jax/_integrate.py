@@ -159,7 +159,8 @@ def integrate(
         args: pytree passed to ``H`` as third argument; may be traced.
         save_every: store every ``save_every``-th state. Static.
         max_newton_iterations: iteration cap per element (the fixed-point iteration counts in
-            blocks of two, so an odd cap is rounded up there). Static.
+            blocks of two, an element of more than 32 unknowns starting with four, so a cap is
+            rounded up to a block's end there). Static.
         krylov: solve by Newton-Krylov (GMRES on Hessian-vector products) where the fixed-point
             iteration is too slow in a system of more than 256 unknowns per element (k * 2d for
             cG(k), (k + 1) * 2d for dG(k)), which without it has the fixed point only: stiff
