@@ -73,9 +73,9 @@ def state_scale(z):
 
 
 def solver_options(method, max_iterations, krylov):
-    """The root finder's ``Options``: a method without a fixed point (dG(k >= 1)) needs Newton
-    at every size, so Newton-Krylov where no dense matrix is kept."""
-    return Options(max_iterations, krylov or not method.fixed_point, method.fixed_point)
+    """The root finder's ``Options`` (a method without a fixed point, dG(k >= 1), has Newton at
+    every size: ``Options.fixed_point``)."""
+    return Options(max_iterations, krylov, method.fixed_point)
 
 
 def solve_element(method, H, q, p, h, args, options):

@@ -121,7 +121,8 @@ class Options:
         krylov: Newton by GMRES on Jacobian-vector products (``_Problem.newton_krylov``) for
             systems of more than ``DENSE_LIMIT`` unknowns, which otherwise have the fixed point
             only. Stiff large systems (h omega >~ 1) need it; it compiles about a second longer.
-        fixed_point: the method has a fixed-point iteration (else every element is Newton's).
+        fixed_point: the method has a fixed-point iteration; else every element is Newton's,
+            by Newton-Krylov where no dense matrix is kept, whatever ``krylov`` says.
     """
 
     max_iterations: int
@@ -213,6 +214,8 @@ class _Problem:
     max_iterations: int
     newton: bool  # a Newton phase is there to ask for
     unit: object = dataclasses.field(init=False)  # (B,): the scale of the ``sizes``, or None
+    # the batched residual, jitted: its ~10 call sites (start, blocks, Newton matrix) reuse one trace
+    _residual: object = dataclasses.field(init=False, repr=False)
 
     def __post_init__(self):
         # ``scale`` (1 where that is 0), computed once, outside the loops. None in float64:
@@ -220,7 +223,6 @@ class _Problem:
         # only past 1e154, where a kinetic energy |p|^2 / 2 in H does too.
         float64 = jnp.finfo(self.scale.dtype).bits == 64
         object.__setattr__(self, "unit", None if float64 else jnp.where(self.scale > 0, self.scale, 1.0))
-        # jitted: its ~10 call sites (start, blocks, Newton matrix) then reuse one trace
         object.__setattr__(self, "_residual", jax.jit(jax.vmap(self.fn)))
 
     def residual(self, Z):
@@ -517,7 +519,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     Returns ``(Z, matrix, iterations, status, trips)``; ``trips`` counts the batch's updates.
     """
     B, n, dtype = Z_pred.shape[0], Z_pred[0].size, Z_pred.dtype
-    krylov = matrix.inverse is None and options.krylov
+    krylov = matrix.inverse is None and (options.krylov or not options.fixed_point)
     problem = _Problem(fn, params, scale, options.max_iterations, matrix.inverse is not None or krylov)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
     nan, false = jnp.full(B, jnp.nan, dtype), jnp.zeros(B, bool)
