@@ -11,7 +11,9 @@ and the number of kernels in the body of every while loop of the compiled progra
 its HLO: the fixed-point block, the Newton loops and the element. The chain's rows run
 twice: with the Gauss-Seidel sweep of partitioned methods (the library's default for states
 of more than 8 degrees of freedom) and with the plain fixed point ``Z <- Z - R(Z)`` (the
-sweep's threshold raised for that row), an A/B in one run. Writes results/solver.json.
+sweep's threshold raised for that row), an A/B in one run, and the contraction rate of either
+iteration at an element's root. Every row also counts the calls of H per element, by a callback
+inside H (``h_calls``). Writes results/solver.json.
 """
 
 import contextlib
@@ -85,8 +87,8 @@ def measure(name, scene, method, h, n_steps, members, options):
         sol = gj.integrate(H, q, p, method=method, h=h, n_steps=n_steps, save_every=n_steps, **options)
         return sol.q[-1], sol.p[-1], sol.status, sol.stats
 
-    fn = jax.vmap(run) if members > 1 else run
     args = (jnp.asarray(q0), jnp.asarray(p0))
+    fn = jax.vmap(run) if members > 1 else run
     compile_s, call = compiled(fn, *args)
     kernels = loop_kernels(call.as_text())
     q, p, status, stats = call(*args)
@@ -97,10 +99,48 @@ def measure(name, scene, method, h, n_steps, members, options):
         "iterations_per_element": stats["num_newton_iterations"],
         "batch_updates_per_element": stats["batch_newton_iterations"], "kernels_per_loop_body": kernels,
     }
+    row["h_calls_per_element"] = h_calls(H, method, h, n_steps, options, args)
     print(f"{name:58} {row['us_per_member_step']:8.3f} us  status {row['status']}"
           f"  iterations {row['iterations_per_element']:5.2f}  batch updates {row['batch_updates_per_element']:5.2f}"
-          f"  compile {compile_s:4.2f} s  kernels per loop body {kernels}", flush=True)
+          f"  H calls {row['h_calls_per_element']:5.2f}  compile {compile_s:4.2f} s  kernels per loop body {kernels}",
+          flush=True)
     return row
+
+
+def h_calls(H, method, h, n_steps, options, args):
+    """Calls of H per element in the timed run, counted by a callback inside H (the error
+    estimate off: XLA drops it from the timed runs): one call evaluates H at every quadrature point of every
+    member, so for the batch it counts the batch's calls. Each residual of the Gauss-Seidel
+    sweep calls H twice (its q half and its p half), any other residual once; so this checks,
+    independently of the solver's own counts, that a step costs its updates and one residual more."""
+    calls = []
+
+    def counted(q, p):
+        jax.debug.callback(lambda: calls.append(1))
+        return H(q, p)
+
+    def run(q, p):
+        sol = gj.integrate(counted, q, p, method=method, h=h, n_steps=n_steps, save_every=n_steps,
+                           error_estimate=False, **options)
+        return sol.q[-1]
+
+    jax.block_until_ready(jax.jit(jax.vmap(run) if args[0].ndim > 1 else run)(*args))
+    return len(calls) / n_steps
+
+
+def contraction(scene, method, h, n_steps=300):
+    """The fixed-point iteration's asymptotic rate, the spectral radius of ``I - dR/dZ`` at an
+    element's root after ``n_steps`` elements, for the residual the solver iterates (the
+    Gauss-Seidel sweep's, or the plain one's under ``plain_fixed_point``): the factor by which
+    each update shrinks once the predictor's error is spread over every mode."""
+    sol = gj.integrate(scene.H, scene.q0, scene.p0, method=method, h=h, n_steps=n_steps, save_every=n_steps)
+    q, p = sol.q[-1], sol.p[-1]
+    options = _march.solver_options(method, 48, False)
+    *_, Z, _, status = _march.solve_element(method, scene.H, q, p, h, None, options)
+    fn, params = _march.element_residual(scene.H), (method, q, p, h, None)
+    J = jax.jacfwd(lambda z: fn(z.reshape(Z.shape), params).reshape(-1))(Z.reshape(-1))
+    assert int(status) == 0
+    return float(np.max(np.abs(np.linalg.eigvals(np.eye(J.shape[0]) - np.asarray(J)))))
 
 
 @contextlib.contextmanager
@@ -121,8 +161,12 @@ def main():
     for name, case in CASES.items():
         rows[name] = measure(name, *case)
         if name.startswith("FPUT"):
+            rows[name]["contraction"] = contraction(*case[:3])
             with plain_fixed_point():
-                rows[name + ", plain fixed point"] = measure(name + ", plain fixed point", *case)
+                plain = rows[name + ", plain fixed point"] = measure(name + ", plain fixed point", *case)
+                plain["contraction"] = contraction(*case[:3])
+            print(f"{'':58} contraction rate: sweep {rows[name]['contraction']:.2e}, plain {plain['contraction']:.2e}",
+                  flush=True)
     write("solver", {"rows": rows})
 
 
