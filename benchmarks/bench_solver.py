@@ -87,8 +87,8 @@ def measure(name, scene, method, h, n_steps, members, options):
         sol = gj.integrate(H, q, p, method=method, h=h, n_steps=n_steps, save_every=n_steps, **options)
         return sol.q[-1], sol.p[-1], sol.status, sol.stats
 
-    args = (jnp.asarray(q0), jnp.asarray(p0))
     fn = jax.vmap(run) if members > 1 else run
+    args = (jnp.asarray(q0), jnp.asarray(p0))
     compile_s, call = compiled(fn, *args)
     kernels = loop_kernels(call.as_text())
     q, p, status, stats = call(*args)
@@ -109,10 +109,11 @@ def measure(name, scene, method, h, n_steps, members, options):
 
 def h_calls(H, method, h, n_steps, options, args):
     """Calls of H per element in the timed run, counted by a callback inside H (the error
-    estimate off: XLA drops it from the timed runs): one call evaluates H at every quadrature point of every
-    member, so for the batch it counts the batch's calls. Each residual of the Gauss-Seidel
-    sweep calls H twice (its q half and its p half), any other residual once; so this checks,
-    independently of the solver's own counts, that a step costs its updates and one residual more."""
+    estimate off: XLA drops it from the timed runs). One call evaluates H at every quadrature
+    point of every member, so for the batch it counts the batch's calls. Each residual of the
+    Gauss-Seidel sweep calls H twice (its q half and its p half), any other residual once, and
+    ``GalerkinVI``'s increment once more; so this checks, independently of the solver's own
+    counts, that a step costs its updates and one residual more."""
     calls = []
 
     def counted(q, p):
@@ -138,8 +139,8 @@ def contraction(scene, method, h, n_steps=300):
     options = _march.solver_options(method, 48, False)
     *_, Z, _, status = _march.solve_element(method, scene.H, q, p, h, None, options)
     fn, params = _march.element_residual(scene.H), (method, q, p, h, None)
-    J = jax.jacfwd(lambda z: fn(z.reshape(Z.shape), params).reshape(-1))(Z.reshape(-1))
     assert int(status) == 0
+    J = jax.jacfwd(lambda z: fn(z.reshape(Z.shape), params).reshape(-1))(Z.reshape(-1))
     return float(np.max(np.abs(np.linalg.eigvals(np.eye(J.shape[0]) - np.asarray(J)))))
 
 
