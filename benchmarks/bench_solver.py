@@ -30,7 +30,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import galerkin_jax as gj  # noqa: E402
 from _common import best_time, compiled, write  # noqa: E402
-from galerkin_jax import _march, scenes  # noqa: E402
+from galerkin_jax import _integrate, _march, scenes  # noqa: E402
 
 NOT_KERNELS = ("get-tuple-element", "constant", "bitcast", "parameter", "tuple")
 
@@ -83,11 +83,14 @@ def measure(name, scene, method, h, n_steps, members, options):
     if members > 1:
         q0, p0 = kepler_batch(members)
 
-    def run(q, p):
-        sol = gj.integrate(H, q, p, method=method, h=h, n_steps=n_steps, save_every=n_steps, **options)
-        return sol.q[-1], sol.p[-1], sol.status, sol.stats
+    def runner(H, **extra):
+        def run(q, p):
+            sol = gj.integrate(H, q, p, method=method, h=h, n_steps=n_steps, save_every=n_steps, **options, **extra)
+            return sol.q[-1], sol.p[-1], sol.status, sol.stats
 
-    fn = jax.vmap(run) if members > 1 else run
+        return jax.vmap(run) if members > 1 else run
+
+    fn = runner(H)
     args = (jnp.asarray(q0), jnp.asarray(p0))
     compile_s, call = compiled(fn, *args)
     kernels = loop_kernels(call.as_text())
@@ -99,7 +102,8 @@ def measure(name, scene, method, h, n_steps, members, options):
         "iterations_per_element": stats["num_newton_iterations"],
         "batch_updates_per_element": stats["batch_newton_iterations"], "kernels_per_loop_body": kernels,
     }
-    row["h_calls_per_element"] = h_calls(H, method, h, n_steps, options, args)
+    # the error estimate off: XLA drops it from the timed run, but not a callback's calls
+    row["h_calls_per_element"] = h_calls(lambda H: runner(H, error_estimate=False), H, args) / n_steps
     print(f"{name:58} {row['us_per_member_step']:8.3f} us  status {row['status']}"
           f"  iterations {row['iterations_per_element']:5.2f}  batch updates {row['batch_updates_per_element']:5.2f}"
           f"  H calls {row['h_calls_per_element']:5.2f}  compile {compile_s:4.2f} s  kernels per loop body {kernels}",
@@ -107,26 +111,20 @@ def measure(name, scene, method, h, n_steps, members, options):
     return row
 
 
-def h_calls(H, method, h, n_steps, options, args):
-    """Calls of H per element in the timed run, counted by a callback inside H (the error
-    estimate off: XLA drops it from the timed runs). One call evaluates H at every quadrature
-    point of every member, so for the batch it counts the batch's calls. Each residual of the
-    Gauss-Seidel sweep calls H twice (its q half and its p half), any other residual once, and
-    ``GalerkinVI``'s increment once more; so this checks, independently of the solver's own
-    counts, that a step costs its updates and one residual more."""
+def h_calls(runner, H, args):
+    """Calls of H in a run, ``runner(H)`` on ``args``, counted by a callback inside H. One call
+    evaluates H at every quadrature point of every member, so for the batch it counts the
+    batch's calls. Each residual of the Gauss-Seidel sweep calls H twice (its q half and its p
+    half), any other residual once, and ``GalerkinVI``'s increment once more; so this checks,
+    independently of the solver's own counts, that a step costs its updates and one residual more."""
     calls = []
 
     def counted(q, p):
         jax.debug.callback(lambda: calls.append(1))
         return H(q, p)
 
-    def run(q, p):
-        sol = gj.integrate(counted, q, p, method=method, h=h, n_steps=n_steps, save_every=n_steps,
-                           error_estimate=False, **options)
-        return sol.q[-1]
-
-    jax.block_until_ready(jax.jit(jax.vmap(run) if args[0].ndim > 1 else run)(*args))
-    return len(calls) / n_steps
+    jax.block_until_ready(jax.jit(runner(counted))(*args))
+    return len(calls)
 
 
 def contraction(scene, method, h, n_steps=300):
@@ -136,7 +134,7 @@ def contraction(scene, method, h, n_steps=300):
     each update shrinks once the predictor's error is spread over every mode."""
     sol = gj.integrate(scene.H, scene.q0, scene.p0, method=method, h=h, n_steps=n_steps, save_every=n_steps)
     q, p = sol.q[-1], sol.p[-1]
-    options = _march.solver_options(method, 48, False)
+    options = _march.solver_options(method, _integrate.DEFAULT_MAX_NEWTON_ITERATIONS, False)
     *_, Z, _, status = _march.solve_element(method, scene.H, q, p, h, None, options)
     fn, params = _march.element_residual(scene.H), (method, q, p, h, None)
     assert int(status) == 0
