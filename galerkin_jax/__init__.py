@@ -5,6 +5,7 @@ classical mechanics; [Tang] W. Tang, Two types of variational integrators and th
 equivalence.
 """
 
+from ._controllers import Event as Event, PIDController as PIDController, TimeTransform as TimeTransform
 from ._galerkin import CG as CG, DG as DG
 from ._integrate import (
     Solution as Solution,
@@ -39,14 +40,17 @@ __all__ = [
     "Configs",
     "DG",
     "DiscreteGradient",
+    "Event",
     "Float32Warning",
     "GalerkinVI",
     "LagrangianVI",
     "ModifiedMidpoint",
+    "PIDController",
     "QuadratureRule",
     "Solution",
     "Status",
     "SweepResult",
+    "TimeTransform",
     "amplification_matrix",
     "asymmetry",
     "gauss_legendre",

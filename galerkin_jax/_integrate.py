@@ -5,26 +5,17 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from . import _basis, _checks
+from . import _adaptive, _checks, _output, _span
+from ._controllers import Events, PIDController, TimeTransform, poincare
+from ._solve import Status
 from ._march import bind_args, input_status, march, nan_if_failed, solve_element, solver_options
+from ._output import DenseOutput
 from ._pytree import pytree_dataclass
 
 DEFAULT_MAX_NEWTON_ITERATIONS = 48  # the fixed point may take 24 of them before it switches to Newton
 
 
-@pytree_dataclass
-class DenseOutput:
-    """Every element's polynomial: ``z(t_n + alpha h) = z_n + sum_j W[n, j] P_j(2 alpha - 1)``.
-
-    Attributes:
-        h: the step size.
-        z: ``(N + 1, 2d)``, the states at the nodes t_n = n h.
-        W: ``(N, m, 2d)``, Legendre coefficients of each element's polynomial minus its start.
-    """
-
-    h: jax.Array
-    z: jax.Array
-    W: jax.Array
+DEFAULT_MAX_STEPS = 4096  # attempts of a run whose steps a controller chooses (diffrax's default)
 
 
 @pytree_dataclass
@@ -32,18 +23,21 @@ class Solution:
     """Saved states of ``integrate``.
 
     Attributes:
-        t: shape ``(m,)``, ``m = n_steps // save_every + 1``, starting at 0.
-        q, p: shape ``(m, d)``, the initial state first.
-        status: int32 ``Status`` code, 0 when every implicit solve converged. After the
-            first failure the remaining states are NaN. Status 0 promises converged solves,
-            not accurate steps: read ``error_estimate`` for that.
+        t: shape ``(m,)``: the save times (``save_at``); for fixed steps every ``save_every``-th
+            node from ``t0`` (``m = n_steps // save_every + 1``); for a controller's run without
+            ``save_at``, ``[t0, t_end]``.
+        q, p: shape ``(m, d)``, the states at ``t``. After the first failure the states are NaN.
+        status: int32 ``Status`` code, 0 when every implicit solve converged. Status 0 promises
+            converged solves, not accurate steps: read ``error_estimate`` for that.
         stats: ``num_newton_iterations`` (total), ``max_newton_iterations`` (largest count in
-            one element) and ``batch_newton_iterations`` (the iterations the batch ran:
-            under ``vmap`` each element waits for the batch's slowest member).
+            one element), ``batch_newton_iterations`` (the iterations the batch ran: under
+            ``vmap`` each element waits for the batch's slowest member), ``num_steps``
+            (accepted elements), ``num_rejected_steps``, ``min_step`` and ``max_step`` (the
+            smallest and largest accepted h; of a time-transformed run, in tau).
         error_estimate: the largest estimated local (one-element) error of the run, max-norm
-            over (q, p), shape () (see ``_defect``); NaN for a failed run and for
-            ``LagrangianVI``.
+            over (q, p), shape (); NaN for a failed run and for ``LagrangianVI``.
         dense: ``DenseOutput`` with ``integrate(..., dense=True)``, else None.
+        events: ``Events`` with ``integrate(..., events=)``, else None.
     """
 
     t: jax.Array
@@ -53,41 +47,37 @@ class Solution:
     stats: dict
     error_estimate: jax.Array
     dense: object = None
+    events: object = None
 
     def evaluate(self, t):
-        """``(q, p)`` at the times ``t`` (scalar or 1-D) in ``[0, n_steps h]``: the saved states
-        at the nodes t = n h, each element's polynomial in between (one run, dense output).
+        """``(q, p)`` at the times ``t`` (scalar or 1-D) in ``[t0, t1]``: the states at the nodes,
+        each element's polynomial in between (one run, ``dense=True``). A time outside
+        [t0, t1] raises a ValueError where t is concrete and gives NaN under jit; every time
+        after a failed element (or a terminal event) gives NaN.
 
         Returns:
             ``(q, p)``, each shape ``t.shape + (d,)``.
         """
-        if self.dense is None:
+        dense = self.dense
+        if dense is None:
             raise ValueError("evaluate needs the element polynomials: integrate(..., dense=True).")
-        h, z, W = self.dense.h, self.dense.z, self.dense.W
-        if jnp.ndim(h) != 0:
+        if jnp.ndim(dense.t) != 1:
             raise ValueError("evaluate works on one run; index a batched Solution first.")
-        t = jnp.asarray(t, z.dtype)
+        t = jnp.asarray(t, dense.z.dtype)
         if t.ndim > 1:
             raise ValueError(f"t must be a scalar or 1-D, got shape {t.shape}.")
-        end = W.shape[0] * h
-        if not isinstance(t, jax.core.Tracer) and not isinstance(end, jax.core.Tracer):
-            if not bool(jnp.all((t >= -1e-12 * end) & (t <= end * (1 + 1e-12)))):
-                raise ValueError(f"t must lie in [0, {float(end)}] (n_steps h), got values outside.")
-        q, p = _evaluate(h, z, W, jnp.atleast_1d(t))
+        bounds = (dense.t[0], dense.t1)
+        if not any(isinstance(x, jax.core.Tracer) for x in (t, *bounds)):
+            lo, hi = (float(b) for b in bounds)
+            if not bool(jnp.all((t >= lo) & (t <= hi))):
+                raise ValueError(f"t must lie in [t0, t1] = [{lo}, {hi}], got values outside.")
+        q, p = dense.view(_evaluate(dense, jnp.atleast_1d(t)))
         return q.reshape(t.shape + q.shape[-1:]), p.reshape(t.shape + p.shape[-1:])
 
 
 @jax.jit
-def _evaluate(h, z, W, t):
-    N = W.shape[0]
-    x = t / h
-    node = jnp.round(x)
-    at_node = jnp.abs(x - node) <= 4 * jnp.finfo(z.dtype).eps * jnp.maximum(1.0, x)
-    n = jnp.clip(jnp.floor(x), 0, N - 1).astype(jnp.int32)
-    P = _basis.legendre_values(jnp.clip(x - n, 0.0, 1.0), W.shape[1])
-    inside = z[n] + jnp.einsum("tj,tjd->td", P, W[n])
-    values = jnp.where(at_node[:, None], z[jnp.clip(node, 0, N).astype(jnp.int32)], inside)
-    return jnp.split(values, 2, axis=-1)
+def _evaluate(dense, t):
+    return _output.evaluate(dense, t)
 
 
 def prepare(H, q0, p0, method, h, args):
@@ -135,7 +125,13 @@ def integrate(
     *,
     method,
     h,
-    n_steps,
+    n_steps=None,
+    t0=0.0,
+    t1=None,
+    controller=None,
+    max_steps=None,
+    save_at=None,
+    events=None,
     args=None,
     save_every=1,
     max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
@@ -145,73 +141,160 @@ def integrate(
     progress=False,
     error_estimate=True,
 ):
-    """Integrate Hamilton's equations over ``n_steps`` elements of size ``h``.
+    """Integrate Hamilton's equations from ``t0`` over ``n_steps`` elements of size ``h``, or to ``t1``.
 
-    The elements are chained by a nested ``lax.scan`` (outer over saves, inner over
-    ``save_every`` elements), so memory is O(n_steps / save_every).
+    Fixed steps are chained by a nested ``lax.scan`` (outer over saves, inner over
+    ``save_every`` elements), so memory is O(n_steps / save_every); to a ``t1`` the last element
+    is shortened to land on it. A ``controller`` chooses the steps (``_adaptive``): error per
+    step (``PIDController``) or a time transformation that keeps the method's structure
+    (``TimeTransform``).
 
     Args:
         H: ``H(q, p)`` or ``H(q, p, args)`` (``L(q, qdot)`` for LagrangianVI).
         q0, p0: shape ``(d,)`` (p0 is the initial momentum for LagrangianVI too).
         method: a method object (CG, DG, GalerkinVI, ...).
-        h: step size > 0; may be traced (vmap over step sizes).
-        n_steps: number of elements, a multiple of ``save_every``. Static.
+        h: step size > 0 (a controller's first step; a time transformation's step in tau); may
+            be traced (vmap over step sizes).
+        n_steps: number of elements, a multiple of ``save_every``. Static. Give it or ``t1``.
+        t0, t1: start and end time; t1 > t0.
+        controller: None (fixed steps), ``PIDController`` or ``TimeTransform``; needs ``t1``.
+        max_steps: static cap on a controller's attempts (accepted and rejected; default
+            4096); with fixed steps to a traced ``t1`` or ``h``, the elements the scan reserves.
+        save_at: sorted times in [t0, t1] at which to save the state (from the element
+            polynomials between nodes); ``Solution.t`` is then ``save_at``.
+        events: an ``Event``: sign changes of g(t, q, p), located on the element polynomials.
         args: pytree passed to ``H`` as third argument; may be traced.
-        save_every: store every ``save_every``-th state. Static.
+        save_every: store every ``save_every``-th state of a fixed-step run of ``n_steps``. Static.
         max_newton_iterations: iteration cap per element (the fixed-point iteration counts in
             blocks of two, an element of more than 32 unknowns starting with four, so a cap is
             rounded up to a block's end there). Static.
         krylov: solve by Newton-Krylov (GMRES on Hessian-vector products) where the fixed-point
             iteration is too slow in a system of more than 256 unknowns per element (k * 2d for
             cG(k), (k + 1) * 2d for dG(k)), which without it has the fixed point only: stiff
-            large systems, h omega >~ 1, need it. It compiles about a second longer. dG(k >= 1)
-            has no fixed point and always uses it. Static.
+            large systems, h omega >~ 1, need it. dG(k >= 1) has no fixed point and always uses
+            it. Static.
         checkpoint: rematerialise each saved block in reverse mode: a gradient then stores
             one state per save instead of every element's residuals. Static.
-        dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps). Static.
+        dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps), or
+            O(max_steps) for a controller's run. Static.
         progress: show a progress bar (tqdm if installed, else lines on stderr), ticked from
-            inside the compiled loop 50 times per run (~1 ms each). Static.
-        error_estimate: compute ``Solution.error_estimate``; False leaves it NaN and saves its
-            cost (a third to a half of the run time on small systems). Static.
+            inside the compiled loop (fixed steps). Static.
+        error_estimate: compute ``Solution.error_estimate`` (``_defect``); False leaves it NaN
+            and saves its cost. A ``PIDController`` run reports its embedded estimate unless
+            this is ``"full"``. Static.
     Returns:
-        ``Solution`` with ``m = n_steps // save_every + 1`` saved states.
+        ``Solution``.
     """
     q0, p0, h = prepare(H, q0, p0, method, h, args)
-    _checks.check_counts(n_steps, save_every)
+    _span.check_span(n_steps, t0, t1, controller)
+    _span.check_controller(controller, method)
     _checks.check_iterations(max_newton_iterations)
     options = solver_options(method, max_newton_iterations, bool(krylov))
-    return _integrate(H, q0, p0, method, h, args, n_steps, save_every, options, checkpoint, bool(dense),
-                      bool(progress), bool(error_estimate))
+    t0 = jnp.asarray(t0, q0.dtype)
+    statics = (options, checkpoint, bool(dense), bool(progress), bool(error_estimate))
+    if n_steps is not None and save_at is None and events is None:
+        _checks.check_counts(n_steps, save_every)
+        return _integrate(H, q0, p0, method, h, args, t0, None, None, n_steps, save_every, *statics)
+    if n_steps is not None:
+        _checks.check_counts(n_steps, 1)
+        t1 = t0 + n_steps * h
+    t1 = jnp.asarray(t1, q0.dtype)
+    ts = _span.check_save_at(save_at, t0, t1, q0.dtype)
+    _span.check_event(events, q0, p0, t0)
+    concrete = not any(isinstance(x, jax.core.Tracer) for x in (h, t0, t1))
+    if max_steps is not None:
+        _span.check_max_steps(max_steps)
+    if controller is None and ts is None and events is None:
+        if save_every != 1:
+            raise ValueError("save_every needs n_steps; with t1, pass save_at=times to save at chosen times.")
+        if concrete:
+            n, h_last = _span.fixed_step_count(t0, t1, h)
+            return _integrate(H, q0, p0, method, h, args, t0, t1, jnp.asarray(h_last, q0.dtype), n, 1, *statics)
+        if max_steps is None:
+            raise ValueError("Fixed steps to a traced t1 (or with a traced h) need max_steps: the elements reserved.")
+        return _integrate(H, q0, p0, method, h, args, t0, t1, None, max_steps, 1, *statics)
+    if max_steps is None:
+        max_steps = _span.fixed_step_count(t0, t1, h)[0] if controller is None and concrete else DEFAULT_MAX_STEPS
+    return _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options,
+                               bool(dense), error_estimate == "full" or (not isinstance(controller, PIDController) and bool(error_estimate)))
 
 
-def solution(final, saved, kept, q0, p0, h, block_size):
-    """The ``Solution`` of one run from ``march``'s outputs."""
+def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
+    """The ``Solution`` of one run from ``march``'s outputs (of a run to ``t1``: its saves
+    are clipped to t1, where a member that reached it early repeats its last state)."""
     qs, ps = saved
     n_saves = qs.shape[0]
+    t = t0 + jnp.arange(n_saves + 1, dtype=q0.dtype) * (block_size * h)
+    if t1 is not None:
+        t = jnp.minimum(t, t1).at[-1].set(t1)
     dense = None
+    status = final["status"]
     if kept is not None:
         starts, W = kept
         z_end = jnp.concatenate([final["q"], final["p"]])
-        dense = DenseOutput(h=h, z=jnp.concatenate([starts, z_end[None]]), W=W)
+        nodes = t0 + jnp.arange(W.shape[0] + 1, dtype=q0.dtype) * h
+        nodes = nodes if t1 is None else jnp.minimum(nodes, t1).at[-1].set(t1)
+        t_end = jnp.where(status == Status.SUCCESS, nodes[-1], nodes[final["steps"]])
+        dense = DenseOutput(t=nodes, z=jnp.concatenate([starts, z_end[None]]), W=W, t_end=t_end, t1=nodes[-1])
     return Solution(
-        t=jnp.arange(n_saves + 1, dtype=q0.dtype) * (block_size * h),
+        t=t,
         q=jnp.concatenate([q0[None], qs]),
         p=jnp.concatenate([p0[None], ps]),
-        status=final["status"],
+        status=status,
         stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"],
-               "batch_newton_iterations": final["trips"]},
+               "batch_newton_iterations": final["trips"], "num_steps": final["steps"],
+               "num_rejected_steps": jnp.zeros_like(final["steps"])},
         error_estimate=final["estimate"],
         dense=dense,
     )
 
 
-@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9, 10, 11, 12))
-def _integrate(H, q0, p0, method, h, args, n_steps, save_every, options, checkpoint, dense, progress, estimate):
+@functools.partial(jax.jit, static_argnums=(0, 9, 10, 11, 12, 13, 14, 15))
+def _integrate(H, q0, p0, method, h, args, t0, t1, h_last, n_steps, save_every, options, checkpoint, dense, progress,
+               estimate):
+    """Fixed steps: ``n_steps`` of size h, or to ``t1`` (the last of size ``h_last``; None: a
+    traced t1 or h, then ``n_steps`` elements are reserved and the first that reach t1 taken)."""
+    n_active = None
+    if t1 is not None and h_last is None:
+        n_active = jnp.clip(jnp.ceil((t1 - t0) / h * (1 - 4 * jnp.finfo(q0.dtype).eps)), 1, n_steps).astype(jnp.int32)
+        h_last = (t1 - t0) - (n_active - 1) * h
     final, saved, kept = march(
         method, H, q0, p0, h, args, n_blocks=n_steps // save_every, block_size=save_every,
         options=options, checkpoint=checkpoint, dense=dense, progress=progress, estimate=estimate,
+        h_last=h_last, n_active=n_active,
     )
-    return solution(final, saved, kept, q0, p0, h, save_every)
+    return solution(final, saved, kept, q0, p0, h, save_every, t0, t1)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14))
+def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, event, max_steps, options, dense, estimate):
+    """A run whose steps are not known in advance (``_adaptive.run``)."""
+    clock, s, run_args, fn = None, None, args, H
+    if isinstance(controller, TimeTransform):
+        fn, q0, p0, run_args, s = poincare(H, controller.s, q0, p0, t0, args)
+        clock = q0.shape[0] - 1
+    view = lambda z: _output.user_view(z, clock)
+    c = _adaptive.run(method, fn, q0, p0, t0, t1, h, run_args, controller, options=options, max_steps=max_steps,
+                      ts=ts, dense=dense, event=event, estimate=estimate, clock=clock, view=view, s=s)
+    status = c["status"]
+    z_end = nan_if_failed(c["z"], status)
+    if ts is not None:
+        t, zs = ts, c["saved"]
+    else:
+        t, zs = jnp.stack([t0, c["t"]]), jnp.stack([jnp.concatenate([q0, p0]), z_end])
+    q, p = view(zs)
+    dense_output = None
+    if dense:
+        dense_output = DenseOutput(t=c["node_t"], z=c["node_z"], W=c["W"], t_end=c["t"], t1=t1, clock=clock)
+    events = None
+    if event is not None:
+        eq, ep = view(c["ev_z"])
+        events = Events(t=c["ev_t"], q=eq, p=ep, count=c["ev_count"])
+    stats = {"num_newton_iterations": c["total"], "max_newton_iterations": c["most"],
+             "batch_newton_iterations": c["trips"], "num_steps": c["steps"], "num_rejected_steps": c["rejected"],
+             "min_step": c["h_min"], "max_step": c["h_max"]}
+    return Solution(t=t, q=q, p=p, status=status, stats=stats, error_estimate=nan_if_failed(c["estimate"], status),
+                    dense=dense_output, events=events)
 
 
 def amplification_matrix(H, q, p, *, method, h, args=None):

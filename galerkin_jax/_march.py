@@ -141,10 +141,13 @@ _AT = {name: i for i, name in enumerate(COUNTERS)}
 
 
 def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoint=False, dense=False,
-          observe=None, acc0=None, progress=False, estimate=True):
+          observe=None, acc0=None, progress=False, estimate=True, h_last=None, n_active=None):
     """Chain ``n_blocks * block_size`` elements of one run.
 
     Args:
+        h_last, n_active: a run to a time t1: its first ``n_active`` elements (traced; None:
+            all) are taken, the last of them of size ``h_last``, and the rest leave the carry
+            as it is (a sweep's members of different h reach the same t1).
         options: the root finder's ``Options`` (``solver_options``).
         observe: optional ``(acc, q, p) -> acc`` folded over the states after each element,
             starting from ``acc0`` (sweep diagnostics).
@@ -171,20 +174,23 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     carry = dict(start, comp=jnp.zeros_like(z0), misses=jnp.zeros((max(MISS_ORDERS),) + guess.shape, guess.dtype),
                  correction=jnp.zeros_like(guess),
                  matrix=initial_matrix(guess, method.fixed_point), counters=counters0, done=jnp.zeros((), jnp.int32),
-                 estimate=jnp.zeros((), z0.dtype), acc=acc0)
+                 estimate=jnp.zeros((), z0.dtype), acc=acc0, steps=jnp.zeros((), jnp.int32))
     total = n_blocks * block_size
 
     def element(c):
         z, counters = c["z"], c["counters"]
         (q, p), failed = split(z), counters[_AT["status"]] != Status.SUCCESS
+        last = total - 1 if n_active is None else n_active - 1
+        h_el = h if h_last is None else jnp.where(c["done"] == last, h_last, h)
+        idle = jnp.zeros((), bool) if n_active is None else c["done"] >= n_active
         previous = (*split(c["z_prev"]), c["Z_prev"])
         Z_pred, continued, constant = predictor(method, q, p, previous, c["correction"])
         Z, matrix, iterations, status, trips = solve(
-            fn, (method, q, p, h, args), Z_pred, constant, c["matrix"], c["scale"], failed, options)
-        z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
+            fn, (method, q, p, h_el, args), Z_pred, constant, c["matrix"], c["scale"], failed | idle, options)
+        z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h_el)), c["comp"])
         scale = state_scale(z1)  # the next element's (NaN or inf where z1 is not finite)
         # an estimate, not a function to differentiate (and no 0 * inf from a failed run's)
-        frozen = jax.lax.stop_gradient((q, p, Z, h, args))
+        frozen = jax.lax.stop_gradient((q, p, Z, h_el, args))
         local = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4])) if estimate else jnp.nan
         status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(scale), Status.NONFINITE, status)
         status = jnp.where(failed, counters[_AT["status"]], status)  # the first failure is kept
@@ -196,10 +202,12 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
                               jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips])
         new = dict(c, **now, comp=comp, misses=misses, correction=correction, matrix=matrix,
                    counters=counters.astype(jnp.int32), done=c["done"] + 1,
-                   estimate=jnp.maximum(c["estimate"], local), acc=acc)
+                   estimate=jnp.maximum(c["estimate"], local), acc=acc, steps=c["steps"] + ok)
+        if n_active is not None:
+            new = jax.tree.map(lambda a, b: jnp.where(idle, a, b), dict(c, done=c["done"] + 1), new)
         if progress:
             _progress.report(new["done"], total, _progress.stride(total))
-        kept = (z, method.polynomial(H_bound, q, p, Z, h)) if dense else None
+        kept = (z, method.polynomial(H_bound, q, p, Z, h_el)) if dense else None
         return new, kept
 
     def reported(c):
@@ -214,7 +222,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     final, (saved, kept) = jax.lax.scan(block, carry, None, length=n_blocks)
     q, p = reported(final)
     status = final["counters"][_AT["status"]]
-    results = dict(q=q, p=p, estimate=nan_if_failed(final["estimate"], status), acc=final["acc"],
+    results = dict(q=q, p=p, estimate=nan_if_failed(final["estimate"], status), acc=final["acc"], steps=final["steps"],
                    **{name: final["counters"][i] for i, name in enumerate(COUNTERS)})
     if kept is not None:
         kept = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), kept)

@@ -73,6 +73,9 @@ class Status(enum.IntEnum):
     NEWTON_MAX_ITERATIONS = 1
     NONFINITE = 2
     INVALID_INPUT = 3
+    MAX_STEPS = 4
+    DTMIN = 5
+    TIME_TRANSFORM = 6
 
 
 MESSAGES = {
@@ -88,6 +91,18 @@ MESSAGES = {
     ),
     Status.NONFINITE: "NaN or inf in the element unknowns; check H, args and the initial state.",
     Status.INVALID_INPUT: "Invalid traced input: h <= 0 or a non-finite initial state.",
+    Status.MAX_STEPS: (
+        "The run reached max_steps (accepted and rejected steps together) before t1; raise "
+        "max_steps or loosen the tolerance."
+    ),
+    Status.DTMIN: (
+        "The step size fell below dtmin (or to the round-off of t) with the step still rejected: "
+        "the solution may be singular there, or the tolerance below what the precision allows."
+    ),
+    Status.TIME_TRANSFORM: (
+        "The time transformation's s(q, p) was not positive and finite (e.g. the default s at an "
+        "equilibrium, where Hamilton's field vanishes); pass a TimeTransform(s=...) of your own."
+    ),
 }
 
 

@@ -1,0 +1,175 @@
+"""The loop of a run whose steps are not known in advance: one ``lax.while_loop`` over attempts.
+
+Three step rules share it:
+
+* ``PIDController``: each attempt solves one element of size h from the constant predictor,
+  estimates its error (``embedded_error``) and is accepted or rejected; h changes by the
+  controller's factor either way. A failed solve or a non-finite state rejects the step, and
+  ends the run only below ``dtmin``.
+* ``TimeTransform``: the run integrates the Poincare-transformed K (``poincare``) in tau with
+  the constant step h; the time is the state's coordinate ``clock``. The element that passes
+  t1 is shortened in tau until it lands on t1 (Newton on its end time, whose tau-derivative
+  is s), so the last step alone differs from h.
+* a constant h (``save_at`` or ``events`` on a run of fixed steps): every attempt is accepted,
+  the last one shortened to land on t1.
+
+Under ``vmap`` every member takes its own steps and finished members idle (their carry is
+masked); the root finder folds the batch into one iteration as in ``march``. The loop is
+forward-differentiable (``jax.jvp``); the step sizes are constants of the trajectory.
+"""
+
+import jax
+import jax.numpy as jnp
+
+from . import _output
+from ._controllers import PIDController, TimeTransform, embedded_error, scaled_error
+from ._march import bind_args, compensated_add, element_residual, input_status, state_scale
+from ._solve import Status, initial_matrix, solve
+
+_LANDING = 8  # shortened attempts of a time-transformed run's last element (Newton converges in 2-3)
+
+
+def _crossing(event, g_a, g_b):
+    up, down = (g_a < 0) & (g_b >= 0), (g_a > 0) & (g_b <= 0)
+    return {0: up | down, 1: up, -1: down}[event.direction]
+
+
+def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, ts=None, dense=False,
+        event=None, estimate=False, clock=None, view=None, s=None):
+    """Integrate from t0 to t1 with the step rule ``controller`` (None: the constant h0).
+
+    Args:
+        H: the Hamiltonian the method solves (K for a time-transformed run), unbound.
+        q0, p0: its initial state (extended by (t, p_t) for a time-transformed run).
+        clock: index of the time coordinate in z = (q, p), or None (time is t0 + sum h).
+        view: ``z -> (q, p)`` the user's state from z (drops the extended coordinates).
+        s: the bound step density of a time-transformed run (checked at every node).
+        ts: sorted save times, or None.
+        estimate: compute each accepted element's full local error (``local_error``).
+    Returns:
+        a dict: ``t``, ``z`` (final), ``status``, counts, ``h_min``, ``h_max``, ``estimate``,
+        and ``saved``, ``dense`` and ``events`` where asked.
+    """
+    fn = element_residual(H)
+    H_bound = bind_args(H, args)
+    view = view or (lambda z: jnp.split(z, 2))
+    z0 = jnp.concatenate([q0, p0])
+    dtype = z0.dtype
+    guess = method.initial_guess(q0, p0)
+    m = method.polynomial(H_bound, q0, p0, guess, h0).shape[0]
+    pid = isinstance(controller, PIDController)
+    t0, t1 = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype)
+    tiny = 16 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))
+    counts = dict(steps=0, rejected=0, attempts=0, total=0, most=0, trips=0)
+    c = dict(z=z0, comp=jnp.zeros_like(z0), t=t0, h=jnp.asarray(h0, dtype), err1=jnp.ones((), dtype),
+             err2=jnp.ones((), dtype), landing=jnp.zeros((), jnp.int32),
+             matrix=initial_matrix(guess, method.fixed_point),
+             status=input_status(q0, p0, h0), h_min=jnp.full((), jnp.inf, dtype), h_max=jnp.zeros((), dtype),
+             estimate=jnp.zeros((), dtype), **{k: jnp.zeros((), jnp.int32) for k in counts})
+    c["done"] = c["status"] != Status.SUCCESS
+    if ts is not None:
+        first = jnp.where(ts[:, None] == t0, z0[None, :], jnp.nan)
+        c["saved"], c["index"] = first, jnp.sum(ts <= t0).astype(jnp.int32)
+    if dense:
+        c["node_t"] = jnp.full((max_steps + 1,), jnp.inf, dtype).at[0].set(t0)
+        c["node_z"] = jnp.full((max_steps + 1,) + z0.shape, jnp.nan, dtype).at[0].set(z0)
+        c["W"] = jnp.zeros((max_steps, m) + z0.shape, dtype)
+    if event is not None:
+        g = lambda t, z: event.g(t, *view(z))
+        shape = (event.capacity,)
+        c.update(g_a=g(t0, z0), ev_t=jnp.full(shape, jnp.nan, dtype), ev_z=jnp.full(shape + z0.shape, jnp.nan, dtype),
+                 ev_count=jnp.zeros((), jnp.int32))
+
+    def body(c):
+        active = ~c["done"]
+        z, t = c["z"], c["t"]
+        q, p = jnp.split(z, 2)
+        if clock is None:
+            last = t + c["h"] * (1 + 4 * jnp.finfo(dtype).eps) >= t1
+            h = jnp.where(last, t1 - t, c["h"])
+        else:
+            h = c["h"]
+        Z, matrix, iterations, status, trips = solve(
+            fn, (method, q, p, h, args), guess, guess, c["matrix"], state_scale(z), ~active, options)
+        z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
+        W = method.polynomial(H_bound, q, p, Z, h)
+        solved = (status == Status.SUCCESS) & jnp.all(jnp.isfinite(z1))
+        status = jnp.where((status == Status.SUCCESS) & ~solved, Status.NONFINITE, status)
+        h_next, err1, err2, landing = c["h"], c["err1"], c["err2"], c["landing"]
+        if pid:
+            e = embedded_error(H_bound, q, p, W, h)
+            err = jnp.where(solved, scaled_error(e, z, z1, controller), jnp.inf)
+            accept = err <= 1
+            factor = controller.next_factor(err, c["err1"], c["err2"], m, accept)
+            h_next = jnp.minimum(h * factor, controller.dtmax)
+            err1, err2 = jnp.where(accept, err, err1), jnp.where(accept, err1, err2)
+            t_b = jnp.where(last, t1, t + h)
+            at_floor = ~accept & ((h <= controller.dtmin) | (h_next <= tiny))
+            status = jnp.where(at_floor, Status.DTMIN, Status.SUCCESS)
+            finished = accept & last
+        elif clock is not None:
+            t_b = z1[clock]
+            positive = s(*view(z1)) > 0  # NaN compares False
+            status = jnp.where(solved & ~positive, Status.TIME_TRANSFORM, status)
+            solved = solved & positive
+            near = jnp.abs(t_b - t1) <= tiny
+            # Newton on the end time t_b(h), dt_b/dh = s(z1) (alpha beyond 1 extrapolates w)
+            shorten = solved & ~near & ((t_b > t1) | (landing > 0)) & (landing < _LANDING)
+            h_next = jnp.where(shorten, h * (1 + (t1 - t_b) / (h * s(*view(z1)))), h)
+            landing = landing + shorten
+            accept = solved & ~shorten
+            finished = accept & (near | (t_b > t1))
+            t_b = jnp.where(finished, t1, t_b)
+        else:
+            accept, finished, t_b = solved, solved & last, jnp.where(last, t1, t + h)
+        accept = accept & active
+        fail = active & (status != Status.SUCCESS)
+        new = dict(c, matrix=matrix, h=jnp.where(active, h_next, c["h"]), err1=err1, err2=err2, landing=landing)
+        end = dict(z=z1, comp=comp, t=t_b)
+        if event is not None:
+            g_b = g(t_b, z1)
+            hit = accept & _crossing(event, c["g_a"], g_b)
+            f = lambda a: g(_output._time(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
+            zero = jnp.zeros((), dtype)
+            alpha = _output.locate(f, zero, jnp.ones((), dtype), c["g_a"])
+            at = _output.on_polynomial(z, W, alpha[None])[0]
+            t_ev = _output._time(z, W, alpha, t, h, clock)
+            slot = jnp.where(hit & (c["ev_count"] < event.capacity), c["ev_count"], event.capacity)
+            new.update(ev_t=c["ev_t"].at[slot].set(t_ev, mode="drop"), ev_z=c["ev_z"].at[slot].set(at, mode="drop"),
+                       ev_count=c["ev_count"] + hit, g_a=jnp.where(accept, g_b, c["g_a"]))
+            if event.terminal:
+                end = jax.tree.map(lambda a, b: jnp.where(hit, a, b), dict(z=at, comp=jnp.zeros_like(comp), t=t_ev), end)
+                finished = finished | hit
+        if ts is not None:  # a rejected step writes nothing: its end time is -inf
+            t_end = jnp.where(accept, end["t"], -jnp.inf)
+            new["saved"], new["index"] = _output.fill_saves(c["saved"], c["index"], ts, (z, W, t, t_end, h, clock),
+                                                            end["z"])
+        if dense:  # written in place; a rejected step's index lies past the buffers
+            n = jnp.where(accept, c["steps"], max_steps + 1)
+            new["node_t"] = c["node_t"].at[n + 1].set(end["t"], mode="drop")
+            new["node_z"] = c["node_z"].at[n + 1].set(end["z"], mode="drop")
+            new["W"] = c["W"].at[n].set(W, mode="drop")
+        if estimate:
+            frozen = jax.lax.stop_gradient((q, p, Z, h, args))
+            local = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4]))
+        else:
+            local = jnp.max(jnp.abs(embedded_error(H_bound, q, p, W, h))) if pid else jnp.nan
+        for key in end:
+            new[key] = jnp.where(accept, end[key], c[key])
+        attempts = c["attempts"] + active
+        out_of_steps = active & ~finished & (attempts >= max_steps) & ~fail
+        pid_reject = active & ~accept & ~fail if pid else jnp.zeros((), bool)
+        new.update(
+            status=jnp.where(fail, status, jnp.where(out_of_steps, Status.MAX_STEPS, c["status"])).astype(jnp.int32),
+            done=c["done"] | fail | finished | out_of_steps,
+            steps=c["steps"] + accept, rejected=c["rejected"] + pid_reject, attempts=attempts,
+            total=c["total"] + iterations * active, most=jnp.maximum(c["most"], iterations * active),
+            trips=c["trips"] + trips * active,
+            h_min=jnp.where(accept, jnp.minimum(c["h_min"], h), c["h_min"]),
+            h_max=jnp.where(accept, jnp.maximum(c["h_max"], h), c["h_max"]),
+            estimate=jnp.where(accept, jnp.fmax(c["estimate"], local), c["estimate"]),
+        )
+        return new
+
+    c = jax.lax.while_loop(lambda c: ~c["done"], body, c)
+    return c

@@ -1,0 +1,179 @@
+"""Step-size controllers and events: what ``integrate(..., controller=, events=)`` takes.
+
+* ``PIDController``: error-per-step control of h with diffrax's option names and meanings,
+  driven by the element's embedded estimate (``embedded_error``).
+* ``TimeTransform``: variable steps that keep the structure. The run integrates the
+  Poincare-transformed Hamiltonian
+
+      K(q, t, p, p_t) = s(q, p) (H(q, p) + p_t),   p_t(0) = -H(q0, p0),
+
+  in a fictive time tau with the constant step h. K is a Hamiltonian on the extended phase
+  space (q, t | p, p_t), so a symplectic method stays symplectic and a symmetric one
+  symmetric; on K = 0 its flow is H's flow with dt/dtau = s (Hairer, Lubich, Wanner,
+  Geometric Numerical Integration, Sec. VIII.2). The method conserves K near 0, so the
+  energy error H - H0 = K / s stays bounded over long runs, which error-per-step control does
+  not give.
+* ``Event``: a scalar g(t, q, p) whose sign changes are located on the element polynomial.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from ._defect import hamilton_field, symplectic_field
+from ._pytree import pytree_dataclass
+
+
+@pytree_dataclass
+class PIDController:
+    """Error-per-step control of the step size h [diffrax's ``PIDController``].
+
+    A step's error is ``err = rms(e / (atol + rtol max(|z0|, |z1|)))``, e the element's embedded
+    estimate (``embedded_error``, of order q = degree + 1 of the element polynomial); the step is
+    accepted when ``err <= 1`` and its implicit solve converged to a finite state, and the next
+    h is ``h clip(safety err^(-b1/q) err_prev^(-b2/q) err_prev2^(-b3/q), factormin, factormax)``
+    with b1 = pcoeff + icoeff + dcoeff, b2 = -(pcoeff + 2 dcoeff), b3 = dcoeff (a rejected step
+    never grows h; a failed solve shrinks it by ``factormin``). The fields are pytree leaves, so a
+    sweep can vmap over tolerances.
+
+    Args:
+        rtol, atol: relative and absolute tolerance on the embedded estimate, > 0. The true local
+            error of a superconvergent method (cG(k): order 2k + 1) lies below it.
+        pcoeff, icoeff, dcoeff: PID coefficients (default: I control, ``icoeff = 1``).
+        dtmin: smallest step; a step rejected at dtmin ends the run with status DTMIN (default 0:
+            the run ends where h falls to the round-off of t).
+        dtmax: largest step (default inf).
+        safety: factor < 1 on the predicted optimal h.
+        factormin, factormax: bounds of the factor by which h changes per step.
+    """
+
+    rtol: float
+    atol: float
+    pcoeff: float = 0.0
+    icoeff: float = 1.0
+    dcoeff: float = 0.0
+    dtmin: float = 0.0
+    dtmax: float = float("inf")
+    safety: float = 0.9
+    factormin: float = 0.2
+    factormax: float = 10.0
+
+    def next_factor(self, err, err_prev, err_prev2, order, accepted):
+        """The factor on h after a step with scaled error ``err`` (inf for a failed solve)."""
+        b1 = self.pcoeff + self.icoeff + self.dcoeff
+        b2 = -(self.pcoeff + 2 * self.dcoeff)
+        b3 = self.dcoeff
+        tiny = jnp.finfo(jnp.result_type(err)).tiny
+        inverse = lambda e: 1.0 / jnp.maximum(e, tiny)
+        factor = self.safety * inverse(err) ** (b1 / order) * inverse(err_prev) ** (b2 / order) \
+            * inverse(err_prev2) ** (b3 / order)
+        factor = jnp.where(jnp.isfinite(err), factor, self.factormin)
+        upper = jnp.where(accepted, self.factormax, 1.0)
+        return jnp.clip(factor, self.factormin, upper)
+
+
+def default_step_density(H, F0):
+    """The default s(q, p) of ``TimeTransform``: ``(|F(z0)| / |F(z)|)^(3/4)`` with F = J DH
+    Hamilton's field, |.| its Euclidean norm and ``F0`` = |F(z0)|.
+
+    Why: where one term of F dominates near a singularity, as the force 1/r^2 of a close
+    encounter, |F|^(-3/4) ~ r^(3/2), the dynamical time scale sqrt(r^3 / (G M)) over which
+    the orbit turns (Kepler's third law), so the steps follow the orbit's own time scale; and
+    s(z0) = 1, so h is the first step's length in t. Where it fails: at an equilibrium F = 0
+    (s = inf; the status reports it), and where |F|, which mixes the units of q' and p', does
+    not measure how fast the state turns (pass your own s there).
+    """
+    return lambda q, p: (F0 / field_norm(H, q, p)) ** 0.75
+
+
+def field_norm(H, q, p):
+    """|J DH(q, p)|, the Euclidean norm of Hamilton's field."""
+    return jnp.sqrt(sum(jnp.sum(f * f) for f in hamilton_field(H)(q, p)))
+
+
+@pytree_dataclass
+class TimeTransform:
+    """Variable steps that keep symplecticity and symmetry: the Poincare transformation
+    (module docstring) with dt/dtau = s(q, p) and the constant step h in tau.
+
+    Args:
+        s: ``s(q, p) -> scalar > 0``, the step density (small where the motion is fast), or
+            ``s(q, p, args)`` when ``args`` is passed; None: ``default_step_density``. A
+            non-positive or non-finite s inside a run ends it with status TIME_TRANSFORM.
+    """
+
+    s: object = dataclasses.field(default=None, metadata=dict(static=True))
+
+
+@pytree_dataclass
+class Event:
+    """A sign change of ``g(t, q, p)`` (a scalar), located on the element polynomial.
+
+    Args:
+        g: the event function.
+        direction: 0 any crossing, +1 only upward (g from < 0 to >= 0), -1 only downward.
+        terminal: end the run at the first event; its time and state are the run's last.
+        capacity: the number of events stored (``Solution.events``); later ones are counted.
+    """
+
+    g: object = dataclasses.field(metadata=dict(static=True))
+    direction: int = dataclasses.field(default=0, metadata=dict(static=True))
+    terminal: bool = dataclasses.field(default=False, metadata=dict(static=True))
+    capacity: int = dataclasses.field(default=64, metadata=dict(static=True))
+
+
+@pytree_dataclass
+class Events:
+    """The events of a run: ``t`` (capacity,), ``q``, ``p`` (capacity, ...) with NaN in unused
+    rows, and ``count``, the number of events found (may exceed the capacity)."""
+
+    t: jax.Array
+    q: jax.Array
+    p: jax.Array
+    count: jax.Array
+
+
+def embedded_error(H, q0, p0, W, h):
+    """The controller's estimate of one element: the defect of its polynomial at the element's
+    end, ``delta(1) = w'(1) - h F(w(1))`` with F = J DH (``_defect``), shape ``(2d,)``.
+
+    The Galerkin equations make the defect orthogonal to the test space, not zero, and its
+    value at alpha = 1 is O(h^q) with q = m, the number of Legendre coefficients of w - z0
+    (degree + 1): an embedded estimate of order q from what the element already has, at the
+    cost of one evaluation of Hamilton's field. The full a posteriori estimate
+    (``_defect.local_error``) has the method's own order (2k + 1 for cG(k)) and costs J + 1
+    field evaluations and J products with its Jacobian.
+    """
+    m = W.shape[0]
+    slopes = jnp.asarray([j * (j + 1.0) for j in range(m)], W.dtype)  # d/dalpha P_j(2 alpha - 1) at 1
+    end = jnp.concatenate([q0, p0]) + jnp.sum(W, axis=0)
+    return jnp.sum(slopes[:, None] * W, axis=0) - h * symplectic_field(H)(end)
+
+
+def scaled_error(e, z0, z1, controller):
+    """``rms(e / (atol + rtol max(|z0|, |z1|)))``; inf where it is not finite."""
+    tolerance = controller.atol + controller.rtol * jnp.maximum(jnp.abs(z0), jnp.abs(z1))
+    err = jnp.sqrt(jnp.mean((e / tolerance) ** 2))
+    return jnp.where(jnp.isfinite(err), err, jnp.inf)
+
+
+def poincare(H, s, q0, p0, t0, args):
+    """The time-transformed problem: ``(K, q~0, p~0, args~, s~)`` with the Poincare-transformed
+    Hamiltonian ``K(q~, p~, args~) = s(q, p) (H(q, p) + p_t)`` on ``q~ = (q, t)``, ``p~ = (p, p_t)``,
+    ``p_t(0) = -H(q0, p0)`` (module docstring), and ``s~(q, p)`` the step density bound to
+    ``args~``. H and s take ``args`` when it is not None; s None: ``default_step_density``.
+    """
+    d = q0.shape[0]
+    bind = lambda f, a: f if a is None else (lambda q, p: f(q, p, a))
+    step_density = lambda a: default_step_density(bind(H, a[0]), a[1]) if s is None else bind(s, a[0])
+
+    def K(qt, pt, a):
+        q, p = qt[:d], pt[:d]
+        return step_density(a)(q, p) * (bind(H, a[0])(q, p) + pt[d])
+
+    H0 = bind(H, args)(q0, p0)
+    extended = (args, field_norm(bind(H, args), q0, p0))
+    qt0 = jnp.concatenate([q0, jnp.asarray(t0, q0.dtype)[None]])
+    pt0 = jnp.concatenate([p0, -H0[None]])
+    return K, qt0, pt0, extended, step_density(extended)

@@ -1,0 +1,141 @@
+"""What a run gives besides its nodes: states between them, from the element polynomials.
+
+Every element n carries ``w(alpha) = z_n + sum_j W[n, j] P_j(2 alpha - 1)``, alpha in [0, 1]
+(the method's ``polynomial``). Its time is ``t_n + alpha h_n``, or, in a time-transformed run
+(``TimeTransform``), the time coordinate of w itself. This module evaluates w at chosen
+times (``save_at``, ``Solution.evaluate``), locates the sign changes of an event function on
+it, and holds the dense output of a run.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from . import _basis
+from ._pytree import pytree_dataclass
+
+
+def on_polynomial(z0, W, alpha):
+    """w(alpha) for one element: ``z0`` (2d,), ``W`` (m, 2d), ``alpha`` (n,) -> (n, 2d)."""
+    return z0[None, :] + _basis.combine(_basis.legendre_values(alpha, W.shape[0]), W)
+
+
+def _time(z0, W, alpha, t0, h, clock):
+    """The time at ``alpha`` (scalar): ``t0 + alpha h``, or w's coordinate ``clock``."""
+    if clock is None:
+        return t0 + alpha * h
+    return on_polynomial(z0, W, alpha[None])[0, clock]
+
+
+def locate(f, lo, hi, f_lo, iterations=48):
+    """The root of ``f`` in [lo, hi], where f(lo) = ``f_lo`` and f(hi) have opposite signs (or
+    f(hi) = 0): Newton's method safeguarded by bisection (the Newton point replaces the bracket's
+    midpoint when it lies inside the bracket), a fixed number of iterations, so that the root
+    is found to round-off of alpha and the loop's length does not depend on the data.
+
+    Returns alpha, a scalar in [lo, hi]."""
+    f_and_slope = jax.value_and_grad(f)
+
+    def body(_, bracket):
+        lo, hi, f_lo, x = bracket
+        value, slope = f_and_slope(x)
+        same = jnp.sign(value) == jnp.sign(f_lo)
+        lo, hi = jnp.where(same, x, lo), jnp.where(same, hi, x)
+        f_lo = jnp.where(same, value, f_lo)
+        newton = x - value / jnp.where(slope == 0, jnp.inf, slope)
+        inside = (newton > lo) & (newton < hi) & jnp.isfinite(newton)
+        return lo, hi, f_lo, jnp.where(inside, newton, 0.5 * (lo + hi))
+
+    lo, hi, _, x = jax.lax.fori_loop(0, iterations, body, (lo, hi, f_lo, 0.5 * (lo + hi)))
+    return jnp.clip(x, lo, hi)
+
+
+def alpha_at_time(z0, W, t, t0, h, clock):
+    """alpha in [0, 1] with time(alpha) = t on one element (``t`` between its ends)."""
+    if clock is None:
+        return jnp.clip((t - t0) / h, 0.0, 1.0)
+    f = lambda a: _time(z0, W, a, t0, h, clock) - t
+    zero = jnp.zeros((), W.dtype)
+    return locate(f, zero, jnp.ones((), W.dtype), f(zero), iterations=24)
+
+
+def fill_saves(saved, index, ts, element, z_end):
+    """Write the states at the times ``ts[index:]`` that lie in the element ``(t_a, t_b]``.
+
+    Args:
+        saved: ``(len(ts), 2d)`` buffer.
+        index: the first time not yet written.
+        ts: the sorted save times.
+        element: ``(z0, W, t_a, t_b, h, clock)`` of the element.
+        z_end: its end state (the node value, which a discontinuous w need not reach).
+    Returns:
+        ``(saved, index)``.
+    """
+    z0, W, t_a, t_b, h, clock = element
+    n = ts.shape[0]
+
+    def more(c):
+        return (c[1] < n) & (ts[jnp.minimum(c[1], n - 1)] <= t_b)
+
+    def write(c):
+        saved, i = c
+        t = ts[i]
+        alpha = alpha_at_time(z0, W, t, t_a, h, clock)
+        value = jnp.where(t == t_b, z_end, on_polynomial(z0, W, alpha[None])[0])
+        return saved.at[i].set(value), i + 1
+
+    return jax.lax.while_loop(more, write, (saved, index))
+
+
+@pytree_dataclass
+class DenseOutput:
+    """Every element's polynomial: ``z(t) = z_n + sum_j W[n, j] P_j(2 alpha - 1)`` on element n.
+
+    Attributes:
+        t: ``(N + 1,)`` node times (inf past the last element of a controller's run).
+        z: ``(N + 1, 2d)`` states at the nodes.
+        W: ``(N, m, 2d)`` Legendre coefficients of each element's polynomial minus its start.
+        t_end: the time up to which the run holds valid states (a failed run's last good node,
+            a terminal event's time): NaN after it.
+        t1: the end of the requested span.
+        clock: static; None where alpha = (t - t_n) / h_n, else the index d of the time
+            coordinate in z = (q, t, p, p_t) (a time-transformed run), dropped by ``view``.
+    """
+
+    t: jax.Array
+    z: jax.Array
+    W: jax.Array
+    t_end: jax.Array
+    t1: jax.Array
+    clock: object = dataclasses.field(default=None, metadata=dict(static=True))
+
+    def view(self, z):
+        """``(q, p)`` of states z (..., 2d) or, time-transformed, (..., 2d + 2)."""
+        return user_view(z, self.clock)
+
+
+def user_view(z, clock):
+    """``(q, p)`` from z = (q, p), or from z = (q, t, p, p_t) when ``clock`` = d."""
+    if clock is None:
+        return tuple(jnp.split(z, 2, axis=-1))
+    d = clock
+    return z[..., :d], z[..., d + 1 : 2 * d + 1]
+
+
+def evaluate(dense, t):
+    """States at the times ``t`` (1-D) from ``dense``; NaN outside ``[t_0, t_end]``."""
+    N = dense.W.shape[0]
+    starts = dense.t[:-1]
+    n = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, N - 1)
+    clock = dense.clock
+
+    def one(t, n):
+        z0, W, t_a, t_b = dense.z[n], dense.W[n], dense.t[n], dense.t[n + 1]
+        alpha = alpha_at_time(z0, W, t, t_a, t_b - t_a, clock)
+        value = jnp.where(t == t_b, dense.z[n + 1], on_polynomial(z0, W, alpha[None])[0])
+        return jnp.where(t == t_a, z0, value)
+
+    values = jax.vmap(one)(t, n)
+    inside = (t >= dense.t[0]) & (t <= dense.t_end)
+    return jnp.where(inside[:, None], values, jnp.nan)

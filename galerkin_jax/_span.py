@@ -1,0 +1,122 @@
+"""Checks of a run's time span, step rule, save times and events, before anything is traced.
+
+Values are checked where they are concrete; traced ones are reported through the status.
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._controllers import Event, PIDController, TimeTransform
+
+
+def _concrete(*xs):
+    return all(not isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(xs))
+
+
+def _scalar(name, x):
+    if jnp.ndim(x) != 0:
+        raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(x)}.")
+    if _concrete(x) and not np.isfinite(float(x)):
+        raise ValueError(f"{name} must be finite, got {float(x)}.")
+
+
+def check_span(n_steps, t0, t1, controller):
+    """Exactly one of ``n_steps`` and ``t1``; ``t1 > t0``; a controller needs ``t1``."""
+    if (n_steps is None) == (t1 is None):
+        raise ValueError("Give exactly one of n_steps and t1 (the end time).")
+    _scalar("t0", t0)
+    if controller is not None:
+        if not isinstance(controller, (PIDController, TimeTransform)):
+            raise TypeError(f"controller must be gj.PIDController or gj.TimeTransform, got {type(controller).__name__}.")
+        if n_steps is not None:
+            raise ValueError("A controller chooses the steps: give t1 (the end time), not n_steps.")
+    if t1 is not None:
+        _scalar("t1", t1)
+        if _concrete(t0, t1) and not float(t1) > float(t0):
+            raise ValueError(f"t1 must be greater than t0, got t0 = {float(t0)} and t1 = {float(t1)}.")
+
+
+def check_controller(controller, method):
+    """Tolerances > 0 and the bounds of a ``PIDController``; methods a controller can drive."""
+    if controller is None:
+        return
+    if type(method).__name__ == "LagrangianVI":
+        raise ValueError(
+            "LagrangianVI is given L(q, qdot), which has no Hamilton's field for the embedded "
+            "estimate or the time transformation: use GalerkinVI on the matching H, or fixed steps."
+        )
+    if isinstance(controller, TimeTransform):
+        if controller.s is not None and not callable(controller.s):
+            raise TypeError(f"TimeTransform.s must be a callable s(q, p), got {type(controller.s).__name__}.")
+        return
+    for name in ("rtol", "atol", "pcoeff", "icoeff", "dcoeff", "safety", "factormin", "factormax", "dtmin"):
+        _scalar(f"controller.{name}", getattr(controller, name))
+    if not _concrete(controller):
+        return
+    c = controller
+    for name in ("rtol", "atol"):
+        if not float(getattr(c, name)) > 0:
+            raise ValueError(f"controller.{name} must be > 0, got {float(getattr(c, name))}.")
+    if not 0 < float(c.safety) <= 1:
+        raise ValueError(f"controller.safety must lie in (0, 1], got {float(c.safety)}.")
+    if not 0 < float(c.factormin) < 1 < float(c.factormax):
+        raise ValueError(
+            f"controller needs 0 < factormin < 1 < factormax, got {float(c.factormin)} and {float(c.factormax)}."
+        )
+    if not 0 <= float(c.dtmin) < float(c.dtmax):
+        raise ValueError(f"controller needs 0 <= dtmin < dtmax, got {float(c.dtmin)} and {float(c.dtmax)}.")
+
+
+def check_max_steps(max_steps):
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}.")
+
+
+def check_save_at(save_at, t0, t1, dtype):
+    """``save_at`` as a 1-D array, sorted, in [t0, t1]; None stays None."""
+    if save_at is None:
+        return None
+    ts = jnp.asarray(save_at, dtype)
+    if ts.ndim != 1 or ts.shape[0] == 0:
+        raise ValueError(f"save_at must be a non-empty 1-D array of times, got shape {ts.shape}.")
+    if _concrete(ts):
+        values = np.asarray(ts)
+        if not np.all(np.isfinite(values)):
+            raise ValueError("save_at must hold finite times.")
+        if np.any(np.diff(values) < 0):
+            raise ValueError("save_at must be sorted (non-decreasing).")
+        if _concrete(t0, t1) and (values[0] < float(t0) or values[-1] > float(t1)):
+            raise ValueError(
+                f"save_at must lie in [t0, t1] = [{float(t0)}, {float(t1)}], got [{values[0]}, {values[-1]}]."
+            )
+    return ts
+
+
+def check_event(event, q0, p0, t0):
+    if event is None:
+        return
+    if not isinstance(event, Event):
+        raise TypeError(f"events must be a gj.Event, got {type(event).__name__}.")
+    if not callable(event.g):
+        raise TypeError(f"Event.g must be a callable g(t, q, p), got {type(event.g).__name__}.")
+    if event.direction not in (-1, 0, 1):
+        raise ValueError(f"Event.direction must be -1, 0 or 1, got {event.direction!r}.")
+    if isinstance(event.capacity, bool) or not isinstance(event.capacity, (int, np.integer)) or event.capacity < 1:
+        raise ValueError(f"Event.capacity must be an integer >= 1, got {event.capacity!r}.")
+    try:
+        out = jax.eval_shape(event.g, jnp.asarray(t0, q0.dtype), q0, p0)
+    except TypeError as error:
+        raise TypeError(f"Event.g could not be called as g(t, q, p): {error}") from error
+    if getattr(out, "shape", None) != ():
+        raise ValueError(f"Event.g must return a scalar, got shape {getattr(out, 'shape', None)}.")
+
+
+def fixed_step_count(t0, t1, h):
+    """``(n, h_last)``: the elements of size h from t0 to t1, the last shortened to land on t1
+    (an end within 4 eps of t1 counts as t1: no sliver of an element)."""
+    span = float(t1) - float(t0)
+    n = max(1, math.ceil(span / float(h) * (1 - 4 * np.finfo(float).eps)))
+    return n, span - (n - 1) * float(h)
