@@ -22,11 +22,20 @@ import jax
 import jax.numpy as jnp
 
 from . import _output
-from ._controllers import PIDController, TimeTransform, embedded_error, scaled_error
+from ._controllers import PIDController, TimeTransform, embedded_error, poincare, scaled_error
 from ._march import bind_args, compensated_add, element_residual, input_status, state_scale
 from ._solve import Status, initial_matrix, solve
 
 _LANDING = 8  # shortened attempts of a time-transformed run's last element (Newton converges in 2-3)
+
+
+def problem(H, controller, q0, p0, t0, args):
+    """``(H, q0, p0, args, s, clock)`` the loop solves: the user's, or with a ``TimeTransform``
+    the Poincare-transformed problem on the extended state (``poincare``)."""
+    if not isinstance(controller, TimeTransform):
+        return H, q0, p0, args, None, None
+    K, q0, p0, args, s = poincare(H, controller.s, q0, p0, t0, args)
+    return K, q0, p0, args, s, q0.shape[0] - 1
 
 
 def _crossing(event, g_a, g_b):
@@ -35,24 +44,24 @@ def _crossing(event, g_a, g_b):
 
 
 def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, ts=None, dense=False,
-        event=None, estimate=False, clock=None, view=None, s=None):
+        event=None, estimate=False, clock=None, s=None, observe=None, acc0=None):
     """Integrate from t0 to t1 with the step rule ``controller`` (None: the constant h0).
 
     Args:
         H: the Hamiltonian the method solves (K for a time-transformed run), unbound.
         q0, p0: its initial state (extended by (t, p_t) for a time-transformed run).
         clock: index of the time coordinate in z = (q, p), or None (time is t0 + sum h).
-        view: ``z -> (q, p)`` the user's state from z (drops the extended coordinates).
         s: the bound step density of a time-transformed run (checked at every node).
         ts: sorted save times, or None.
         estimate: compute each accepted element's full local error (``local_error``).
+        observe, acc0: ``(acc, q, p) -> acc`` folded over the accepted states (``march``).
     Returns:
         a dict: ``t``, ``z`` (final), ``status``, counts, ``h_min``, ``h_max``, ``estimate``,
         and ``saved``, ``dense`` and ``events`` where asked.
     """
     fn = element_residual(H)
     H_bound = bind_args(H, args)
-    view = view or (lambda z: jnp.split(z, 2))
+    view = lambda z: _output.user_view(z, clock)
     z0 = jnp.concatenate([q0, p0])
     dtype = z0.dtype
     guess = method.initial_guess(q0, p0)
@@ -67,6 +76,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
              status=input_status(q0, p0, h0), h_min=jnp.full((), jnp.inf, dtype), h_max=jnp.zeros((), dtype),
              estimate=jnp.zeros((), dtype), **{k: jnp.zeros((), jnp.int32) for k in counts})
     c["done"] = c["status"] != Status.SUCCESS
+    if observe is not None:
+        c["acc"] = acc0
     if ts is not None:
         first = jnp.where(ts[:, None] == t0, z0[None, :], jnp.nan)
         c["saved"], c["index"] = first, jnp.sum(ts <= t0).astype(jnp.int32)
@@ -156,6 +167,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             local = jnp.max(jnp.abs(embedded_error(H_bound, q, p, W, h))) if pid else jnp.nan
         for key in end:
             new[key] = jnp.where(accept, end[key], c[key])
+        if observe is not None:
+            new["acc"] = jax.tree.map(lambda a, b: jnp.where(accept, b, a), c["acc"], observe(c["acc"], *view(end["z"])))
         attempts = c["attempts"] + active
         out_of_steps = active & ~finished & (attempts >= max_steps) & ~fail
         pid_reject = active & ~accept & ~fail if pid else jnp.zeros((), bool)

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _adaptive, _checks, _output, _span
-from ._controllers import Events, PIDController, TimeTransform, poincare
+from ._controllers import Events, PIDController
 from ._solve import Status
 from ._march import bind_args, input_status, march, nan_if_failed, solve_element, solver_options
 from ._output import DenseOutput
@@ -269,13 +269,10 @@ def _integrate(H, q0, p0, method, h, args, t0, t1, h_last, n_steps, save_every, 
 @functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14))
 def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, event, max_steps, options, dense, estimate):
     """A run whose steps are not known in advance (``_adaptive.run``)."""
-    clock, s, run_args, fn = None, None, args, H
-    if isinstance(controller, TimeTransform):
-        fn, q0, p0, run_args, s = poincare(H, controller.s, q0, p0, t0, args)
-        clock = q0.shape[0] - 1
+    fn, q0, p0, run_args, s, clock = _adaptive.problem(H, controller, q0, p0, t0, args)
     view = lambda z: _output.user_view(z, clock)
     c = _adaptive.run(method, fn, q0, p0, t0, t1, h, run_args, controller, options=options, max_steps=max_steps,
-                      ts=ts, dense=dense, event=event, estimate=estimate, clock=clock, view=view, s=s)
+                      ts=ts, dense=dense, event=event, estimate=estimate, clock=clock, s=s)
     status = c["status"]
     z_end = nan_if_failed(c["z"], status)
     if ts is not None:

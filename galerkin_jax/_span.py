@@ -3,6 +3,7 @@
 Values are checked where they are concrete; traced ones are reported through the status.
 """
 
+import dataclasses
 import math
 
 import jax
@@ -39,8 +40,9 @@ def check_span(n_steps, t0, t1, controller):
             raise ValueError(f"t1 must be greater than t0, got t0 = {float(t0)} and t1 = {float(t1)}.")
 
 
-def check_controller(controller, method):
-    """Tolerances > 0 and the bounds of a ``PIDController``; methods a controller can drive."""
+def check_controller(controller, method, batch=None):
+    """Tolerances > 0 and the bounds of a ``PIDController`` (each field a scalar, or in a sweep
+    of ``batch`` configurations also of shape (batch,)); methods a controller can drive."""
     if controller is None:
         return
     if type(method).__name__ == "LagrangianVI":
@@ -52,22 +54,29 @@ def check_controller(controller, method):
         if controller.s is not None and not callable(controller.s):
             raise TypeError(f"TimeTransform.s must be a callable s(q, p), got {type(controller.s).__name__}.")
         return
-    for name in ("rtol", "atol", "pcoeff", "icoeff", "dcoeff", "safety", "factormin", "factormax", "dtmin"):
-        _scalar(f"controller.{name}", getattr(controller, name))
-    if not _concrete(controller):
-        return
-    c = controller
-    for name in ("rtol", "atol"):
-        if not float(getattr(c, name)) > 0:
-            raise ValueError(f"controller.{name} must be > 0, got {float(getattr(c, name))}.")
-    if not 0 < float(c.safety) <= 1:
-        raise ValueError(f"controller.safety must lie in (0, 1], got {float(c.safety)}.")
-    if not 0 < float(c.factormin) < 1 < float(c.factormax):
-        raise ValueError(
-            f"controller needs 0 < factormin < 1 < factormax, got {float(c.factormin)} and {float(c.factormax)}."
-        )
-    if not 0 <= float(c.dtmin) < float(c.dtmax):
-        raise ValueError(f"controller needs 0 <= dtmin < dtmax, got {float(c.dtmin)} and {float(c.dtmax)}.")
+    shapes = [()] if batch is None else [(), (batch,)]
+    values = {}
+    for field in dataclasses.fields(controller):
+        x = getattr(controller, field.name)
+        if jnp.shape(x) not in shapes:
+            allowed = "a scalar" if batch is None else f"a scalar or of shape ({batch},)"
+            raise ValueError(f"controller.{field.name} must be {allowed}, got shape {jnp.shape(x)}.")
+        if _concrete(x):
+            values[field.name] = np.asarray(x, dtype=float)
+    bounds = {
+        "rtol": lambda v: v > 0, "atol": lambda v: v > 0, "safety": lambda v: (v > 0) & (v <= 1),
+        "factormin": lambda v: (v > 0) & (v < 1), "factormax": lambda v: v > 1,
+        "dtmin": lambda v: v >= 0, "dtmax": lambda v: v > 0,
+    }
+    for name, ok in bounds.items():
+        if name in values and not np.all(ok(values[name])):
+            raise ValueError(f"controller.{name} out of range: got {values[name]} (rtol, atol > 0; 0 < safety <= 1; "
+                             "0 < factormin < 1 < factormax; 0 <= dtmin < dtmax).")
+    for name in ("pcoeff", "icoeff", "dcoeff"):
+        if name in values and not np.all(np.isfinite(values[name])):
+            raise ValueError(f"controller.{name} must be finite, got {values[name]}.")
+    if "dtmin" in values and "dtmax" in values and not np.all(values["dtmin"] < values["dtmax"]):
+        raise ValueError(f"controller needs dtmin < dtmax, got {values['dtmin']} and {values['dtmax']}.")
 
 
 def check_max_steps(max_steps):

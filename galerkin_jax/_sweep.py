@@ -16,8 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from . import _checks
-from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, solution
+from . import _adaptive, _checks, _span
+from ._controllers import PIDController
+from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, DEFAULT_MAX_STEPS, solution
+from ._output import user_view
 from ._march import bind_args, march, nan_if_failed, solver_options
 from ._pytree import pytree_dataclass
 
@@ -40,6 +42,7 @@ class SweepResult:
             of the batch's iterations a member spent waiting for slower members; in a batch of
             64 or more, the last eighth of the members to converge iterate apart, gathered,
             at an eighth of the cost).
+        num_steps, num_rejected_steps: accepted and rejected steps of each run.
         solution: a batched ``Solution`` when ``save_every`` was given, else None; its
             ``stats`` are the Newton counts above.
     """
@@ -54,6 +57,8 @@ class SweepResult:
     num_newton_iterations: jax.Array
     max_newton_iterations: jax.Array
     batch_newton_iterations: jax.Array
+    num_steps: Any = None
+    num_rejected_steps: Any = None
     solution: Any = None
 
 
@@ -88,33 +93,65 @@ def _block_size(n_steps, save_every, checkpoint):
     return min(divisors, key=lambda b: abs(b - n_steps**0.5))
 
 
+def _final_error(final, reference):
+    if reference is None:
+        return None
+    return jnp.max(jnp.abs(jnp.concatenate([final["q"] - reference[0], final["p"] - reference[1]], axis=1)), axis=1)
+
+
+def _result(final, runs, invariants, reference):
+    energy, others = final["acc"]
+    return SweepResult(
+        energy_error=nan_if_failed(energy, final["status"]),
+        invariant_errors={name: nan_if_failed(e, final["status"]) for name, e in zip(invariants, others)},
+        final_error=_final_error(final, reference),
+        q=final["q"], p=final["p"], status=final["status"], error_estimate=final["estimate"],
+        num_newton_iterations=final["total"], max_newton_iterations=final["most"],
+        batch_newton_iterations=final["trips"], num_steps=final["steps"], num_rejected_steps=final["rejected"],
+        solution=runs,
+    )
+
+
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5, 6, 7))
-def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, estimate, configs, reference):
+def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, estimate, configs, reference, t0, t1):
+    """Fixed steps: ``n_steps`` elements, or to ``t1`` (each member its own count, at most n_steps)."""
     invariants = dict(invariants)
     block = _block_size(n_steps, save_every, checkpoint)
 
     def one(method, q0, p0, h, args):
         acc0, observe = _diagnostics(H, invariants, q0, p0, args)
+        to_t1 = {}
+        if t1 is not None:
+            n_active = jnp.clip(jnp.ceil((t1 - t0) / h * (1 - 4 * jnp.finfo(q0.dtype).eps)), 1, n_steps)
+            to_t1 = dict(n_active=n_active.astype(jnp.int32), h_last=(t1 - t0) - (n_active - 1) * h)
         final, saved, _ = march(method, H, q0, p0, h, args, n_blocks=n_steps // block, block_size=block,
                                 options=options, checkpoint=checkpoint, observe=observe, acc0=acc0,
-                                progress=progress, estimate=estimate)
-        return final, (solution(final, saved, None, q0, p0, h, block) if save_every else None)
+                                progress=progress, estimate=estimate, **to_t1)
+        final["rejected"] = jnp.zeros_like(final["steps"])
+        return final, (solution(final, saved, None, q0, p0, h, block, t0) if save_every else None)
 
     c = configs
     final, runs = jax.vmap(one)(c.method, c.q0, c.p0, c.h, c.args)
-    energy, others = final["acc"]
-    final_error = None
-    if reference is not None:
-        final_error = jnp.max(jnp.abs(jnp.concatenate([final["q"] - reference[0], final["p"] - reference[1]], axis=1)), axis=1)
-    return SweepResult(
-        energy_error=nan_if_failed(energy, final["status"]),
-        invariant_errors={name: nan_if_failed(e, final["status"]) for name, e in zip(invariants, others)},
-        final_error=final_error,
-        q=final["q"], p=final["p"], status=final["status"], error_estimate=final["estimate"],
-        num_newton_iterations=final["total"], max_newton_iterations=final["most"],
-        batch_newton_iterations=final["trips"],
-        solution=runs,
-    )
+    return _result(final, runs, invariants, reference)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
+def _run_adaptive(H, invariants, max_steps, options, estimate, configs, reference, t0, t1, controller):
+    """A controller's runs to ``t1``, each member its own steps (``_adaptive.run``)."""
+    invariants = dict(invariants)
+
+    def one(method, q0, p0, h, args, controller):
+        acc0, observe = _diagnostics(H, invariants, q0, p0, args)
+        fn, z_q0, z_p0, run_args, s, clock = _adaptive.problem(H, controller, q0, p0, t0, args)
+        c = _adaptive.run(method, fn, z_q0, z_p0, t0, t1, h, run_args, controller, options=options,
+                          max_steps=max_steps, estimate=estimate, clock=clock, s=s, observe=observe, acc0=acc0)
+        q, p = user_view(nan_if_failed(c["z"], c["status"]), clock)
+        return dict(q=q, p=p, estimate=nan_if_failed(c["estimate"], c["status"]), acc=c["acc"],
+                    **{k: c[k] for k in ("status", "total", "most", "trips", "steps", "rejected")})
+
+    c = configs
+    final = jax.vmap(one)(c.method, c.q0, c.p0, c.h, c.args, controller)
+    return _result(final, None, invariants, reference)
 
 
 def _shard(tree, devices):
@@ -132,7 +169,11 @@ def sweep(
     H,
     configs,
     *,
-    n_steps,
+    n_steps=None,
+    t0=0.0,
+    t1=None,
+    controller=None,
+    max_steps=None,
     invariants=None,
     reference=None,
     save_every=None,
@@ -143,15 +184,21 @@ def sweep(
     progress=False,
     error_estimate=True,
 ):
-    """Run every configuration of ``configs`` for ``n_steps`` elements in one compiled call.
+    """Run every configuration of ``configs`` for ``n_steps`` elements, or to ``t1``, in one compiled call.
 
     Args:
         H: ``H(q, p)`` or ``H(q, p, args)``.
         configs: ``Configs`` with batch size B (e.g. from ``grid``).
-        n_steps: elements per configuration. Static.
+        n_steps: elements per configuration. Static. Give it or ``t1``.
+        t0, t1: start and end time: with ``t1`` every configuration reaches t1 (fixed steps:
+            its last element shortened; members of a smaller h take more elements).
+        controller: None, ``PIDController`` or ``TimeTransform`` (as in ``integrate``); the
+            fields of a ``PIDController`` may have shape (B,) to sweep tolerances.
+        max_steps: a controller's cap on attempts per configuration (default 4096). Static.
         invariants: ``{name: I(q, p)}`` whose relative change is tracked (e.g. angular momentum).
         reference: ``(q_ref, p_ref)`` of shape ``(B, d)`` for ``final_error``.
-        save_every: store a trajectory with this stride (``SweepResult.solution``); default none.
+        save_every: store a trajectory with this stride (``SweepResult.solution``); default
+            none; fixed steps of ``n_steps`` only.
         krylov: Newton-Krylov for systems of more than 256 unknowns (see ``integrate``). Static.
         devices: shard the batch over these devices (e.g. ``jax.devices()``); results equal
             the unsharded run (up to how XLA compiles the per-device batch size). Several hosts: call ``jax.distributed.initialize()`` first and
@@ -165,16 +212,37 @@ def sweep(
     Returns:
         ``SweepResult`` with a leading axis B on every field.
     """
-    configs = _checks.check_sweep(H, configs, n_steps, save_every, invariants, reference)
+    _span.check_span(n_steps, t0, t1, controller)
+    if t1 is not None and save_every is not None:
+        raise ValueError("save_every needs n_steps: a sweep to t1 saves no trajectory.")
+    hs = np.asarray(getattr(configs, "h", 1.0), dtype=float)
+    counts = None
+    if t1 is not None and controller is None:
+        if not np.all(np.isfinite(hs) & (hs > 0)):
+            raise ValueError("configs.h must be finite and > 0.")
+        counts = max(_span.fixed_step_count(t0, t1, h)[0] for h in np.atleast_1d(hs))
+    configs = _checks.check_sweep(H, configs, n_steps or counts or 1, save_every, invariants, reference)
+    _span.check_controller(controller, configs.method, configs.size)
     invariants = dict(invariants or {})
     _checks.check_iterations(max_newton_iterations)
     reference = None if reference is None else tuple(jnp.asarray(r) for r in reference)
-    inputs = (configs, reference)
+    dtype = configs.q0.dtype
+    if controller is not None:
+        if max_steps is not None:
+            _span.check_max_steps(max_steps)
+        controller = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, dtype), (configs.size,)), controller)
+    inputs = (configs, reference) if controller is None else (configs, reference, controller)
     if devices is not None:
         inputs = _shard(inputs, devices)
     options = solver_options(configs.method, max_newton_iterations, bool(krylov))
-    result = _run(H, tuple(invariants.items()), n_steps, save_every, options, checkpoint, bool(progress),
-                  bool(error_estimate), *inputs)
+    span = (jnp.asarray(t0, dtype), None if t1 is None else jnp.asarray(t1, dtype))
+    if controller is None:
+        result = _run(H, tuple(invariants.items()), n_steps or counts, save_every, options, checkpoint,
+                      bool(progress), bool(error_estimate), *inputs[:2], *span)
+    else:
+        estimate = error_estimate == "full" or (not isinstance(controller, PIDController) and bool(error_estimate))
+        result = _run_adaptive(H, tuple(invariants.items()), max_steps or DEFAULT_MAX_STEPS, options, estimate,
+                               inputs[0], inputs[1], *span, inputs[2])
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
     return result
