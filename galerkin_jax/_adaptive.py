@@ -75,6 +75,9 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
              matrix=initial_matrix(guess, method.fixed_point),
              status=input_status(q0, p0, h0), h_min=jnp.full((), jnp.inf, dtype), h_max=jnp.zeros((), dtype),
              estimate=jnp.zeros((), dtype), **{k: jnp.zeros((), jnp.int32) for k in counts})
+    if s is not None:
+        s0 = s(*_output.user_view(z0, clock))
+        c["status"] = jnp.where((s0 > 0) & jnp.isfinite(s0), c["status"], Status.TIME_TRANSFORM).astype(jnp.int32)
     c["done"] = c["status"] != Status.SUCCESS
     if observe is not None:
         c["acc"] = acc0
@@ -120,13 +123,14 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             finished = accept & last
         elif clock is not None:
             t_b = z1[clock]
-            positive = s(*view(z1)) > 0  # NaN compares False
+            s1 = s(*view(z1))
+            positive = (s1 > 0) & jnp.isfinite(s1)
             status = jnp.where(solved & ~positive, Status.TIME_TRANSFORM, status)
             solved = solved & positive
             near = jnp.abs(t_b - t1) <= tiny
             # Newton on the end time t_b(h), dt_b/dh = s(z1) (alpha beyond 1 extrapolates w)
             shorten = solved & ~near & ((t_b > t1) | (landing > 0)) & (landing < _LANDING)
-            h_next = jnp.where(shorten, h * (1 + (t1 - t_b) / (h * s(*view(z1)))), h)
+            h_next = jnp.where(shorten, h * (1 + (t1 - t_b) / (h * s1)), h)
             landing = landing + shorten
             accept = solved & ~shorten
             finished = accept & (near | (t_b > t1))

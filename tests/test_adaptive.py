@@ -1,0 +1,243 @@
+"""Time spans, error-per-step control, the time transformation, saving at chosen times and events."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import galerkin_jax as gj
+import helpers
+
+H, Q0, P0 = helpers.kepler(0.5)
+T = 2 * np.pi
+CG4 = gj.CG(4, gj.gauss_legendre(4))
+CG3 = gj.CG(3, gj.gauss_legendre(3))
+
+
+def pid(tol, **kw):
+    return gj.PIDController(rtol=tol, atol=tol, **kw)
+
+
+def error_after_one_orbit(sol):
+    return float(np.max(np.abs(np.concatenate([sol.q[-1] - Q0, sol.p[-1] - P0]))))
+
+
+def test_error_falls_with_the_tolerance():
+    """Kepler e = 0.5 over one orbit with cG(4): the error falls monotonically with rtol = atol.
+    The embedded estimate has order 5 and the method's local error order 9, so the error falls
+    faster than the tolerance (measured: 1.2e-9, 1.1e-12, 1.3e-14 at 1e-6, 1e-8, 1e-10) and the
+    steps grow like tol^(-1/5) (41, 100, 251)."""
+    sols = [gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=T, controller=pid(tol)) for tol in (1e-6, 1e-8, 1e-10)]
+    errors = [error_after_one_orbit(s) for s in sols]
+    steps = [int(s.stats["num_steps"]) for s in sols]
+    assert all(int(s.status) == 0 for s in sols)
+    assert errors[0] > 100 * errors[1] > 100 * 10 * errors[2] / 10  # each 100x tighter tolerance: >= 100x smaller
+    assert errors[0] < 1e-6 and errors[2] < 1e-12
+    # steps ~ tol^(-1/5): 2.5x per factor 100 (measured 2.44, 2.51); 1.8 and 3.5 bracket it
+    assert all(1.8 < b / a < 3.5 for a, b in zip(steps, steps[1:]))
+    assert sols[2].t[-1] == T
+
+
+def test_a_first_step_of_half_a_period_is_rejected_not_fatal():
+    """h0 = pi (half the orbit): the controller rejects and shrinks it, the run is as accurate as
+    with a reasonable first step (measured 4.6e-13 against 1.1e-12 from h0 = 0.1)."""
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=np.pi, t1=T, controller=pid(1e-8))
+    assert int(sol.status) == 0
+    assert int(sol.stats["num_rejected_steps"]) >= 2  # factormin = 0.2 per rejection: pi -> 0.13 needs two
+    assert float(sol.stats["max_step"]) < 0.5
+    assert error_after_one_orbit(sol) < 1e-10
+
+
+def test_a_vmapped_member_equals_its_single_run():
+    """Each member of a vmap over tolerances and initial states takes its own steps and equals
+    its single run (same steps, and the states to the last bits the batched solver may move)."""
+    tols = jnp.array([1e-6, 1e-9])
+    hs = jnp.array([0.1, 0.02])
+    run = lambda tol, h: gj.integrate(H, Q0, P0, method=CG4, h=h, t1=T, controller=pid(tol))
+    batch = jax.vmap(run)(tols, hs)
+    for b in range(2):
+        single = run(tols[b], hs[b])
+        assert int(batch.stats["num_steps"][b]) == int(single.stats["num_steps"])
+        assert int(batch.stats["num_rejected_steps"][b]) == int(single.stats["num_rejected_steps"])
+        np.testing.assert_allclose(batch.q[b], single.q, rtol=0, atol=1e-13)
+    assert int(batch.stats["num_steps"][0]) < int(batch.stats["num_steps"][1])
+
+
+def test_a_sweep_over_tolerances_and_initial_states_equals_integrate():
+    states = (jnp.stack([Q0, Q0 * 1.1]), jnp.stack([P0, P0]))
+    configs = gj.Configs(method=gj.stack_methods([CG4, CG4]), h=jnp.array([0.1, 0.1]), q0=states[0], p0=states[1])
+    tols = jnp.array([1e-7, 1e-10])
+    result = gj.sweep(H, configs, t1=T, controller=gj.PIDController(rtol=tols, atol=tols))
+    for b in range(2):
+        single = gj.integrate(H, states[0][b], states[1][b], method=CG4, h=0.1, t1=T, controller=pid(tols[b]))
+        assert int(result.num_steps[b]) == int(single.stats["num_steps"])
+        np.testing.assert_allclose(result.q[b], single.q[-1], rtol=0, atol=1e-13)
+        # energy error: the run's largest |H - H0| / |H0|, about the final state error here
+        assert float(result.energy_error[b]) < [1e-7, 1e-10][b]
+
+
+def test_fixed_steps_to_t1_land_on_t1_and_a_sweep_reaches_it_with_every_h():
+    """The last element is shortened: every run ends at t1 exactly, at the accuracy of cG(3)
+    against the exact orbit (h = 0.1: 2.9e-6; the shortened element only helps)."""
+    hs = [0.1, 0.07, 0.03]
+    result = gj.sweep(H, gj.grid(method=CG3, h=hs, state=(Q0, P0)), t1=T)
+    for b, h in enumerate(hs):
+        sol = gj.integrate(H, Q0, P0, method=CG3, h=h, t1=T)
+        assert float(sol.t[-1]) == T and int(sol.stats["num_steps"]) == int(np.ceil(T / h))
+        assert int(result.num_steps[b]) == int(sol.stats["num_steps"])
+        np.testing.assert_allclose(result.q[b], sol.q[-1], rtol=0, atol=1e-14)
+        assert error_after_one_orbit(sol) < 2e-4 * h**6 / 0.1**6 * 0.1  # order 6: 2.9e-6 at h = 0.1
+
+
+def test_t0_shifts_time():
+    """An autonomous H: starting at t0 = 5 gives the same states at times shifted by 5, and an
+    event of g = t - 6 fires at t = 6."""
+    base = gj.integrate(H, Q0, P0, method=CG3, h=0.1, n_steps=20)
+    shifted = gj.integrate(H, Q0, P0, method=CG3, h=0.1, n_steps=20, t0=5.0)
+    np.testing.assert_allclose(shifted.t, base.t + 5.0, rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(shifted.q, base.q)
+    sol = gj.integrate(H, Q0, P0, method=CG3, h=0.1, t0=5.0, t1=7.0,
+                       events=gj.Event(lambda t, q, p: t - 6.0, capacity=2))
+    assert int(sol.events.count) == 1 and abs(float(sol.events.t[0]) - 6.0) < 1e-13
+
+
+def test_save_at_is_accurate_between_nodes():
+    """States at times between the nodes come from the element polynomial of degree k: error
+    O(h^(k+1)) against the exact orbit, for fixed and adaptive runs (cG(3): measured slope 3.37
+    from h = 0.1 to 0.05, nearer 4 at smaller h; 3.2 excludes order 3)."""
+    ts = jnp.asarray(np.linspace(0.0, 1.0, 13)[1:] + 0.0123)
+    exact = np.stack([np.concatenate(helpers.kepler_exact(float(t))) for t in ts])
+    errors = []
+    for h in (0.1, 0.05):
+        sol = gj.integrate(H, Q0, P0, method=CG3, h=h, t1=1.1, save_at=ts)
+        assert np.array_equal(np.asarray(sol.t), np.asarray(ts))
+        errors.append(np.max(np.abs(np.concatenate([sol.q, sol.p], axis=1) - exact)))
+    assert 3.2 < np.log2(errors[0] / errors[1]) < 4.6
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=1.1, save_at=ts, controller=pid(1e-10))
+    assert np.max(np.abs(np.concatenate([sol.q, sol.p], axis=1) - exact)) < 1e-6
+
+
+def _energy_error_by_quarter(sol, He, z0, T_end):
+    """The largest |H - H0| at the nodes of each quarter of the run (dense output's nodes)."""
+    n = int(sol.stats["num_steps"])
+    t = np.asarray(sol.dense.t[: n + 1])
+    q, p = sol.dense.view(sol.dense.z[: n + 1])
+    energy = np.abs(np.asarray(jax.vmap(He)(q, p)) - float(He(*z0)))
+    return [energy[(t >= a * T_end / 4) & (t <= (a + 1) * T_end / 4)].max() for a in range(4)]
+
+
+def test_the_time_transformation_lands_on_t1_and_its_energy_error_does_not_drift():
+    """Kepler e = 0.9 over 20 orbits, cG(2) + Gauss 2 (symplectic, symmetric), default s: the
+    energy error at the nodes is bounded (measured: the four quarters' maxima equal to 4
+    digits, 1.78e-4 at h = 0.01, order 4 in h), while PID control drifts (the last quarter's
+    maximum 1.87x the first's over these 20 orbits; 3.85x over 100)."""
+    He, q0, p0 = helpers.kepler(0.9)
+    T_end = 20 * 2 * np.pi
+    method = gj.CG(2, gj.gauss_legendre(2))
+    sol = gj.integrate(He, q0, p0, method=method, h=0.01, t1=T_end, controller=gj.TimeTransform(), dense=True)
+    assert int(sol.status) == 0 and float(sol.t[-1]) == T_end
+    quarters = _energy_error_by_quarter(sol, He, (q0, p0), T_end)
+    assert quarters[-1] <= 1.01 * quarters[0] and quarters[0] < 3e-4
+    pid_sol = gj.integrate(He, q0, p0, method=method, h=0.01, t1=T_end, controller=pid(1e-5), dense=True)
+    pid_quarters = _energy_error_by_quarter(pid_sol, He, (q0, p0), T_end)
+    assert pid_quarters[-1] > 1.5 * pid_quarters[0]
+
+
+def test_events_lie_on_the_section_plane():
+    """Henon-Heiles, section q1 = 0 upward: every event state has |q1| < 1e-10 (Newton on the
+    element polynomial to round-off), and the events' times match a fine reference run."""
+    hh = lambda q, p: 0.5 * (p @ p + q @ q) + q[0] ** 2 * q[1] - q[1] ** 3 / 3
+    q0, p0 = jnp.array([0.0, 0.1]), jnp.array([0.35, 0.0])
+    event = gj.Event(lambda t, q, p: q[0], direction=1, capacity=32)
+    sol = gj.integrate(hh, q0, p0, method=CG4, h=0.1, t1=100.0, controller=pid(1e-10), events=event)
+    n = int(sol.events.count)
+    assert int(sol.status) == 0 and 10 < n <= 32
+    assert np.max(np.abs(sol.events.q[:n, 0])) < 1e-10
+    assert np.all(sol.events.p[:n, 0] > 0)  # upward
+    assert np.all(np.isnan(sol.events.t[n:]))
+    fine = gj.integrate(hh, q0, p0, method=CG4, h=0.01, t1=100.0, events=event)
+    np.testing.assert_allclose(sol.events.t[:n], fine.events.t[:n], rtol=0, atol=1e-7)
+
+
+def test_a_terminal_event_ends_the_run_there():
+    event = gj.Event(lambda t, q, p: q[1], direction=-1, terminal=True)  # y crosses 0 downward: apocentre
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=T, controller=pid(1e-10), events=event, dense=True)
+    assert int(sol.status) == 0 and int(sol.events.count) == 1
+    assert abs(float(sol.events.t[0]) - np.pi) < 1e-9 and abs(float(sol.t[-1]) - np.pi) < 1e-9
+    assert abs(float(sol.q[-1, 0]) + 1.5) < 1e-9
+    assert np.all(np.isnan(sol.evaluate(jnp.array([4.0]))[0]))
+
+
+def test_dense_output_of_a_controlled_run_and_outside_the_span():
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=T, controller=pid(1e-10), dense=True)
+    n = int(sol.stats["num_steps"])
+    nodes = sol.dense.t[: n + 1]
+    assert float(nodes[0]) == 0.0 and float(nodes[-1]) == T and np.all(np.isinf(sol.dense.t[n + 1 :]))
+    t = jnp.asarray([0.3, 2.0, 5.5])
+    q, p = sol.evaluate(t)
+    exact = np.stack([helpers.kepler_exact(float(s))[0] for s in t])
+    assert np.max(np.abs(q - exact)) < 1e-6  # degree-4 polynomial between nodes
+    with pytest.raises(ValueError, match=r"\[t0, t1\]"):
+        sol.evaluate(T + 0.1)
+    inside_jit = jax.jit(lambda s, t: s.evaluate(t)[0])(sol, jnp.asarray([-0.1, 1.0, T + 0.1]))
+    assert np.isnan(inside_jit[0]).all() and np.isnan(inside_jit[2]).all() and np.isfinite(inside_jit[1]).all()
+
+
+def test_dense_output_after_a_failure_is_nan():
+    """A fixed run whose fifth element fails (a cap of 2 iterations at h omega ~ 1 fails at
+    the first hard element): every time from the failing element on gives NaN."""
+    hq, _, q0, p0 = helpers.quartic()
+    sol = gj.integrate(hq, q0, p0, method=CG3, h=0.01, n_steps=40, dense=True, max_newton_iterations=4)
+    assert int(sol.status) != 0
+    good = int(sol.stats["num_steps"])
+    assert good < 40
+    t_fail = good * 0.01
+    q, _ = sol.evaluate(jnp.asarray([0.5 * t_fail, t_fail + 0.005, 0.39]))
+    assert np.isfinite(q[0]).all() and np.isnan(q[1:]).all()
+
+
+def test_statuses_of_a_controlled_run():
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=T, controller=pid(1e-10), max_steps=20)
+    assert int(sol.status) == gj.Status.MAX_STEPS and np.isnan(sol.q[-1]).all()
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=T, controller=pid(1e-10, dtmin=0.05))
+    assert int(sol.status) == gj.Status.DTMIN
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=T, controller=gj.TimeTransform(s=lambda q, p: -1.0 + 0 * q[0]))
+    assert int(sol.status) == gj.Status.TIME_TRANSFORM  # s < 0: time would run backwards
+    rest = jnp.zeros(1)  # the default s at an equilibrium: Hamilton's field vanishes, s = 0 / 0
+    sol = gj.integrate(lambda q, p: 0.5 * (q @ q + p @ p), rest, rest, method=CG3, h=0.1, t1=1.0,
+                       controller=gj.TimeTransform())
+    assert int(sol.status) == gj.Status.TIME_TRANSFORM
+    for status in (gj.Status.MAX_STEPS, gj.Status.DTMIN, gj.Status.TIME_TRANSFORM):
+        assert len(gj.status_message(status)) > 40
+
+
+def test_forward_mode_derivatives_through_a_controlled_run():
+    """jvp through the while loop: d q(T) / d q0 with the steps as constants of the trajectory
+    equals a central difference of the exact flow (tight runs) to the tolerance's level."""
+    run = lambda x: gj.integrate(H, Q0.at[0].set(x), P0, method=CG4, h=0.1, t1=T, controller=pid(1e-11)).q[-1]
+    _, tangent = jax.jvp(run, (Q0[0],), (jnp.ones_like(Q0[0]),))
+    eps = 1e-5
+    fd = (run(Q0[0] + eps) - run(Q0[0] - eps)) / (2 * eps)
+    # the difference quotient's own runs take other steps: it errs by ~tol / eps = 1e-6 of its
+    # size (measured 7.5e-7 relative)
+    assert np.max(np.abs(tangent - fd)) < 1e-5 * np.max(np.abs(fd))
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(n_steps=10, t1=1.0), "exactly one"),
+        (dict(), "exactly one"),
+        (dict(n_steps=10, controller=gj.PIDController(1e-6, 1e-6)), "not n_steps"),
+        (dict(t1=1.0, controller=gj.PIDController(0.0, 1e-6)), "rtol"),
+        (dict(t1=1.0, controller=gj.PIDController(1e-6, -1.0)), "atol"),
+        (dict(t0=1.0, t1=1.0), "greater than t0"),
+        (dict(t1=1.0, save_at=[0.5, 0.2]), "sorted"),
+        (dict(t1=1.0, save_at=[0.5, 1.5]), r"\[t0, t1\]"),
+        (dict(t1=1.0, events=gj.Event(lambda t, q, p: q)), "scalar"),
+        (dict(t1=1.0, save_every=2), "save_at"),
+    ],
+)
+def test_bad_time_span_input_raises_before_compilation(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        gj.integrate(H, Q0, P0, method=CG3, h=0.1, **kwargs)
