@@ -168,8 +168,8 @@ def work_precision(scene, T, reference, scale, knobs, quick):
             show(row, error=row["error"])
             rows.append(row)
             retimes.append(retime)
-    # a second pass, minutes after the first: this machine's speed drifts for seconds at a
-    # time, and the cheapest run at a threshold is a comparison of single timings
+    # a second pass, minutes after the first: a machine's speed drifts for seconds at a time,
+    # and the cheapest run at a threshold is a comparison of single timings
     for row, retime in zip(rows, retimes):
         if row["ok"]:
             row["run_s"] = min(row["run_s"], retime())

@@ -3,7 +3,7 @@
     python benchmarks/bench_solver.py
 
 On XLA's CPU runtime each fused kernel of a loop body is a task of its own, so a loop's cost
-follows its kernel count more than its arithmetic ("The implicit solve" in the README). For a
+follows its kernel count more than its arithmetic (docs/solver.md, "The implicit solve"). For a
 few scenes (the FPUT chain, Kepler, a batch of Kepler orbits, a stiff linear chain with
 ``krylov=True``) this measures microseconds per element (compiled ahead, best of five calls;
 states only returned, so no error estimate), Newton iterations and batch updates per element,

@@ -5,6 +5,8 @@ classical mechanics; [Tang] W. Tang, Two types of variational integrators and th
 equivalence.
 """
 
+__version__ = "0.2.0"  # the version in pyproject.toml (the docs build checks they agree)
+
 from ._controllers import Event as Event, PIDController as PIDController, TimeTransform as TimeTransform
 from ._galerkin import CG as CG, DG as DG
 from ._integrate import (

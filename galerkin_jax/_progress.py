@@ -61,5 +61,6 @@ def report(done, total, stride):
 
 
 def stride(total):
-    """Elements between ticks: 50 ticks per run (a tick costs ~1 ms on the host)."""
+    """Elements between ticks: 50 ticks per run, enough to watch, few enough that the compiled
+    loop does not wait on the host."""
     return max(1, total // 50)

@@ -196,7 +196,7 @@ def _classes(scene, solution):
 
 
 def table51(runs=None):
-    """[GBS, Table 5.1] measured box by box, the boxes the paper leaves empty included (~10 s).
+    """[GBS, Table 5.1] measured box by box, the boxes the paper leaves empty included.
 
     Args:
         runs: the output of ``table_runs`` if already computed.
