@@ -23,7 +23,8 @@ import jax.numpy as jnp
 
 from . import _output
 from ._controllers import PIDController, TimeTransform, embedded_error, poincare, scaled_error
-from ._march import bind_args, compensated_add, element_residual, input_status, state_scale
+from ._march import (bind_args, compensated_add, element_residual, input_status, peak_estimate, peak_start,
+                     peak_update, state_scale)
 from ._solve import Status, initial_matrix, solve
 
 _LANDING = 8  # shortened attempts of a time-transformed run's last element (Newton converges in 2-3)
@@ -53,7 +54,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         clock: index of the time coordinate in z = (q, p), or None (time is t0 + sum h).
         s: the bound step density of a time-transformed run (checked at every node).
         ts: sorted save times, or None.
-        estimate: compute each accepted element's full local error (``local_error``).
+        estimate: the largest local error of the accepted elements, as in ``march``: "full",
+            True (the full estimate where the embedded one peaks) or False (NaN).
         observe, acc0: ``(acc, q, p) -> acc`` folded over the accepted states (``march``).
     Returns:
         a dict: ``t``, ``z`` (final), ``status``, counts, ``h_min``, ``h_max``, ``estimate``,
@@ -164,11 +166,12 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             new["node_t"] = c["node_t"].at[n + 1].set(end["t"], mode="drop")
             new["node_z"] = c["node_z"].at[n + 1].set(end["z"], mode="drop")
             new["W"] = c["W"].at[n].set(W, mode="drop")
-        if estimate:
+        local = jnp.nan
+        if estimate == "full":
             frozen = jax.lax.stop_gradient((q, p, Z, h, args))
             local = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4]))
-        else:
-            local = jnp.max(jnp.abs(embedded_error(H_bound, q, p, W, h))) if pid else jnp.nan
+        elif estimate:
+            new["peak"] = peak_update(c["peak"], method, H_bound, q, p, Z, h, accept)
         for key in end:
             new[key] = jnp.where(accept, end[key], c[key])
         if observe is not None:
@@ -188,5 +191,9 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         )
         return new
 
+    if estimate is True:
+        c["peak"] = peak_start(q0, p0, guess, h0)
     c = jax.lax.while_loop(lambda c: ~c["done"], body, c)
+    if estimate is True:
+        c["estimate"] = peak_estimate(method, H_bound, c["peak"])
     return c

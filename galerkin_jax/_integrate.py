@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _adaptive, _checks, _output, _span
-from ._controllers import Events, PIDController
+from ._controllers import Events
 from ._solve import Status
 from ._march import bind_args, input_status, march, nan_if_failed, solve_element, solver_options
 from ._output import DenseOutput
@@ -179,9 +179,11 @@ def integrate(
             O(max_steps) for a controller's run. Static.
         progress: show a progress bar (tqdm if installed, else lines on stderr), ticked from
             inside the compiled loop (fixed steps). Static.
-        error_estimate: compute ``Solution.error_estimate`` (``_defect``); False leaves it NaN
-            and saves its cost. A ``PIDController`` run reports its embedded estimate unless
-            this is ``"full"``. Static.
+        error_estimate: ``Solution.error_estimate``, the largest local error (``_defect``):
+            True computes the full estimate on the element where the embedded one
+            (``embedded_error``, one field evaluation per element) peaks; ``"full"`` on every
+            element (the exact maximum, at J + 1 field evaluations and J Jacobian products per
+            element); False leaves it NaN. Static.
     Returns:
         ``Solution``.
     """
@@ -191,7 +193,8 @@ def integrate(
     _checks.check_iterations(max_newton_iterations)
     options = solver_options(method, max_newton_iterations, bool(krylov))
     t0 = jnp.asarray(t0, q0.dtype)
-    statics = (options, checkpoint, bool(dense), bool(progress), bool(error_estimate))
+    estimate = _span.check_estimate(error_estimate)
+    statics = (options, checkpoint, bool(dense), bool(progress), estimate)
     if n_steps is not None and save_at is None and events is None:
         _checks.check_counts(n_steps, save_every)
         return _integrate(H, q0, p0, method, h, args, t0, None, None, n_steps, save_every, *statics)
@@ -216,7 +219,7 @@ def integrate(
     if max_steps is None:
         max_steps = _span.fixed_step_count(t0, t1, h)[0] if controller is None and concrete else DEFAULT_MAX_STEPS
     return _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options,
-                               bool(dense), error_estimate == "full" or (not isinstance(controller, PIDController) and bool(error_estimate)))
+                               bool(dense), estimate)
 
 
 def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):

@@ -129,3 +129,14 @@ def fixed_step_count(t0, t1, h):
     span = float(t1) - float(t0)
     n = max(1, math.ceil(span / float(h) * (1 - 4 * np.finfo(float).eps)))
     return n, span - (n - 1) * float(h)
+
+
+def check_estimate(error_estimate):
+    """``error_estimate`` as the march takes it: True, False or "full"."""
+    if isinstance(error_estimate, str):
+        if error_estimate != "full":
+            raise ValueError(f'error_estimate must be True, False or "full", got {error_estimate!r}.')
+        return "full"
+    if not isinstance(error_estimate, (bool, np.bool_)):
+        raise TypeError(f'error_estimate must be True, False or "full", got {type(error_estimate).__name__}.')
+    return bool(error_estimate)

@@ -17,7 +17,6 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import _adaptive, _checks, _span
-from ._controllers import PIDController
 from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, DEFAULT_MAX_STEPS, solution
 from ._output import user_view
 from ._march import bind_args, march, nan_if_failed, solver_options
@@ -208,7 +207,7 @@ def sweep(
             with one), so that a gradient stores one carry per block instead of every
             element's residuals. Static.
         progress: show a progress bar over the elements (all members advance together). Static.
-        error_estimate: compute ``SweepResult.error_estimate`` (else NaN, and cheaper). Static.
+        error_estimate: True, "full" or False, as in ``integrate``. Static.
     Returns:
         ``SweepResult`` with a leading axis B on every field.
     """
@@ -227,6 +226,7 @@ def sweep(
     _checks.check_iterations(max_newton_iterations)
     reference = None if reference is None else tuple(jnp.asarray(r) for r in reference)
     dtype = configs.q0.dtype
+    estimate = _span.check_estimate(error_estimate)
     if controller is not None:
         if max_steps is not None:
             _span.check_max_steps(max_steps)
@@ -238,9 +238,8 @@ def sweep(
     span = (jnp.asarray(t0, dtype), None if t1 is None else jnp.asarray(t1, dtype))
     if controller is None:
         result = _run(H, tuple(invariants.items()), n_steps or counts, save_every, options, checkpoint,
-                      bool(progress), bool(error_estimate), *inputs[:2], *span)
+                      bool(progress), estimate, *inputs[:2], *span)
     else:
-        estimate = error_estimate == "full" or (not isinstance(controller, PIDController) and bool(error_estimate))
         result = _run_adaptive(H, tuple(invariants.items()), max_steps or DEFAULT_MAX_STEPS, options, estimate,
                                inputs[0], inputs[1], *span, inputs[2])
     if devices is not None:
