@@ -10,9 +10,9 @@ cotangent meets ``(dR/dZ)^{-T}``. The linear solve follows the forward solve of 
 * up to ``dense_limit`` unknowns (where the forward solve keeps a dense Newton matrix too),
   ``dR/dZ`` by ``jacfwd`` and an LU solve: exact to round-off, and cheap at that size;
 * above it, restarted GMRES on Jacobian-vector products of R (``jax.linearize``), whose
-  transpose is GMRES on vector-Jacobian products. Reverse mode then stores per element the
-  residual's linearisation, O(n), never an n x n matrix, and a product costs about one
-  linearised residual evaluation, not n of them.
+  transpose is GMRES on vector-Jacobian products. Reverse mode then stores O(n) numbers per
+  element, never an n x n matrix, and a product costs about one linearised residual
+  evaluation, where the matrix costs n of them and its LU n^3 / 3 multiplications.
 
 GMRES stops at a relative residual ``|dR/dZ dZ - b| <= TOLERANCE eps |b|``: there are no
 later updates to refine the tangent (unlike a Newton direction), and the error of every
@@ -29,9 +29,11 @@ import jax.numpy as jnp
 # GMRES stops at a relative residual of TOLERANCE * eps (float64: 1.4e-14, float32: 7.6e-6);
 # a tighter one sits below the round-off of a product with an O(1)-conditioned matrix
 TOLERANCE = 64
-# Krylov spaces of RESTART vectors, at most RESTARTS of them (at most 400 products). A cG(k)
-# element's Jacobian at h omega <~ 1 is I + O(h omega), so GMRES converges in a few tens of
-# products; the cap bounds the work where it cannot converge.
+# Krylov spaces of RESTART vectors (each member keeps RESTART + 1 of n numbers), at most
+# RESTARTS of them: at most 400 products. The element Jacobian of a method with a fixed point
+# is I + O(h omega), and GMRES reaches its tolerance in a few tens of products at h omega <~ 1;
+# a stiff element (h omega ~ 10) can use them all and stop above it, still far below the
+# acceptance bound.
 RESTART, RESTARTS = 40, 10
 
 

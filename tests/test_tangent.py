@@ -17,7 +17,7 @@ import galerkin_jax as gj
 from galerkin_jax import _solve, _tangent, scenes
 
 METHOD = gj.CG(3, gj.gauss_legendre(3))
-STEPS, H_STEP = 4, 0.5  # h omega = 1 at the highest linear frequency 2: Newton-Krylov's regime
+STEPS, H_STEP = 4, 0.5  # h omega = 1 at the chain's highest linear frequency, 2
 
 
 def chain(d):
@@ -126,7 +126,7 @@ def test_unconverged_gmres_gives_nan_per_member_not_a_wrong_tangent(mode):
             return jax.jvp(Z_of, (p,), (weights,))[1]
         return jax.grad(lambda p: weights @ Z_of(p))(p)
 
-    out = jax.vmap(member)(a, p, roots, ok)
+    out = jax.jit(jax.vmap(member))(a, p, roots, ok)
     np.testing.assert_allclose(out[0], weights, rtol=0, atol=1e-14)  # dR/dZ = I: dZ = dp
     assert np.all(np.isnan(out[1]))
     assert np.all(out[2] == 0)
@@ -139,15 +139,13 @@ def test_second_derivatives_see_the_root_move(n):
     1e-12 leaves room for GMRES's 64 eps), so the rule's own derivative sees Z move with p."""
     fn = lambda Z, p: Z**3 + Z - p
     p = jnp.asarray(np.random.default_rng(8).normal(size=n))
-    Z = p
-    for _ in range(60):
-        Z = Z - fn(Z, p) / (3 * Z**2 + 1)
+    Z = jax.lax.fori_loop(0, 60, lambda _, Z: Z - fn(Z, p) / (3 * Z**2 + 1), p)
     first = 1 / (3 * Z**2 + 1)
     second = -6 * Z * first**3
     w = jnp.asarray(np.random.default_rng(9).normal(size=n))
     loss = lambda p: w @ _solve.implicit(fn, p, Z, jnp.asarray(True))
-    np.testing.assert_allclose(jax.grad(loss)(p), w * first, rtol=0, atol=1e-12)
-    forward_over_reverse = jax.jvp(jax.grad(loss), (p,), (w,))[1]
-    reverse_over_reverse = jax.grad(lambda p: jax.grad(loss)(p) @ w)(p)
+    np.testing.assert_allclose(jax.jit(jax.grad(loss))(p), w * first, rtol=0, atol=1e-12)
+    forward_over_reverse = jax.jit(lambda p: jax.jvp(jax.grad(loss), (p,), (w,))[1])(p)
+    reverse_over_reverse = jax.jit(jax.grad(lambda p: jax.grad(loss)(p) @ w))(p)
     for hvp in (forward_over_reverse, reverse_over_reverse):
         np.testing.assert_allclose(hvp, w * second * w, rtol=0, atol=1e-12)
