@@ -599,18 +599,18 @@ def _batched(fn, options):
 def implicit(fn, params, Z, ok):
     """``Z``, a root of ``fn(., params)``, with the tangent of the implicit function theorem:
     ``dZ = -(dR/dZ)^{-1} dR/dparams dparams`` where ``ok``, zero elsewhere (a failed solve
-    has no derivative; its states are NaN)."""
+    has no derivative; its states are NaN). The linear solve follows the forward solve's:
+    dense up to ``DENSE_LIMIT`` unknowns, matrix-free GMRES above (``_tangent``)."""
     return Z
 
 
 @implicit.defjvp
 def _implicit_jvp(fn, primals, tangents):
+    from . import _tangent
+
     params, Z, ok = primals
-    _, dR = jax.jvp(lambda p: fn(Z, p), (params,), (tangents[0],))
-    J = jax.jacfwd(lambda z: fn(z.reshape(Z.shape), params).reshape(-1))(Z.reshape(-1))
-    J = jnp.where(ok, J, jnp.eye(J.shape[0], dtype=J.dtype))
-    dZ = -jnp.linalg.solve(J, dR.reshape(-1))
-    return Z, jnp.where(ok, dZ, 0.0).reshape(Z.shape)
+    Z = implicit(fn, params, Z, ok)  # Z moves with params where the rule is differentiated again
+    return Z, _tangent.tangent(fn, params, Z, ok, tangents[0], dense_limit=DENSE_LIMIT)
 
 
 def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, options):

@@ -1,0 +1,78 @@
+"""The tangent of an element's root by the implicit function theorem.
+
+At a root ``R(Z, params) = 0`` the root moves with the parameters as
+
+    dZ = -(dR/dZ)^{-1} (dR/dparams) dparams.
+
+Forward mode (``jvp``) evaluates this; reverse mode (``grad``) transposes it, so that a
+cotangent meets ``(dR/dZ)^{-T}``. The linear solve follows the forward solve of ``_solve``:
+
+* up to ``dense_limit`` unknowns (where the forward solve keeps a dense Newton matrix too),
+  ``dR/dZ`` by ``jacfwd`` and an LU solve: exact to round-off, and cheap at that size;
+* above it, restarted GMRES on Jacobian-vector products of R (``jax.linearize``), whose
+  transpose is GMRES on vector-Jacobian products. Reverse mode then stores O(n) numbers per
+  element, never an n x n matrix, and a product costs about one linearised residual
+  evaluation, where the matrix costs n of them and its LU n^3 / 3 multiplications.
+
+GMRES stops at a relative residual ``|dR/dZ dZ - b| <= TOLERANCE eps |b|``: there are no
+later updates to refine the tangent (unlike a Newton direction), and the error of every
+element's tangent is carried into the gradient of the whole run. Its result is accepted when
+its residual, recomputed, is below ``sqrt(eps) |b|`` (the forward solve's bound on an
+accepted residual): that admits the floor ``~eps cond(dR/dZ) |b|`` of an ill-conditioned
+matrix, where GMRES runs out of restarts without reaching its tolerance. A solve left above
+it did not converge, and gives NaN, not a finite wrong tangent.
+"""
+
+import jax
+import jax.numpy as jnp
+
+# GMRES stops at a relative residual of TOLERANCE * eps (float64: 1.4e-14, float32: 7.6e-6);
+# a tighter one sits below the round-off of a product with an O(1)-conditioned matrix
+TOLERANCE = 64
+# Krylov spaces of RESTART vectors (each member keeps RESTART + 1 of n numbers), at most
+# RESTARTS of them: at most 400 products. The element Jacobian of a method with a fixed point
+# is I + O(h omega), and GMRES reaches its tolerance in a few tens of products at h omega <~ 1;
+# a stiff element (h omega ~ 10) can use them all and stop above it, still far below the
+# acceptance bound.
+RESTART, RESTARTS = 40, 10
+
+
+def tangent(fn, params, Z, ok, dparams, *, dense_limit):
+    """``dZ = -(dR/dZ)^{-1} (dR/dparams) dparams`` at the root ``Z`` of ``fn(., params)``,
+    zero where ``ok`` is False (a failed solve has no derivative).
+
+    Args:
+        fn: ``(Z, params) -> R``, same shape as Z.
+        params: pytree; ``dparams`` its tangent.
+        Z: the root, any shape; ``ok``: bool scalar.
+        dense_limit: the most unknowns solved densely; above, matrix-free GMRES.
+    Returns:
+        dZ, shape of Z; NaN where GMRES did not converge.
+    """
+    _, dR = jax.jvp(lambda p: fn(Z, p), (params,), (dparams,))
+    if Z.size <= dense_limit:
+        dZ = _dense(fn, params, Z, ok, dR)
+    else:
+        _, jvp = jax.linearize(lambda z: fn(z, params), Z)
+        # a failed member's matrix is I: a finite solve, whose result is masked below
+        matvec = lambda v: jnp.where(ok, jvp(v), v)
+        dZ = -jax.lax.custom_linear_solve(matvec, dR, solve=_gmres, transpose_solve=_gmres)
+    return jnp.where(ok, dZ, 0.0)
+
+
+def _dense(fn, params, Z, ok, dR):
+    J = jax.jacfwd(lambda z: fn(z.reshape(Z.shape), params).reshape(-1))(Z.reshape(-1))
+    J = jnp.where(ok, J, jnp.eye(J.shape[0], dtype=J.dtype))
+    return -jnp.linalg.solve(J, dR.reshape(-1)).reshape(Z.shape)
+
+
+def _gmres(matvec, b):
+    """``x`` with ``matvec(x) = b`` by restarted GMRES (``jax.scipy.sparse.linalg.gmres``,
+    Givens-rotation variant: it stops inside a restart once converged), NaN unless the
+    recomputed residual is below ``sqrt(eps) |b|``. Called by ``custom_linear_solve`` with the
+    product and, in reverse mode, with its transpose: each solve checks its own residual."""
+    eps = jnp.finfo(b.dtype).eps
+    x, _ = jax.scipy.sparse.linalg.gmres(matvec, b, tol=TOLERANCE * eps, restart=RESTART, maxiter=RESTARTS,
+                                         solve_method="incremental")
+    residual, size = jnp.sqrt(jnp.sum((matvec(x) - b) ** 2)), jnp.sqrt(jnp.sum(b * b))
+    return jnp.where(residual <= jnp.sqrt(eps) * size, x, jnp.nan)
