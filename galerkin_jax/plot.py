@@ -234,7 +234,7 @@ def bodies(solution, *, shape=None, dims=None, center=None, ax=None, samples_per
         solution: one run (``gj.Solution``, with dense output drawn as in ``orbit``) or the
             positions alone, an array ``q``. Either of shape ``(m, N, D)``, or flat ``(m, N * D)``
             with ``shape=(N, D)``: body n's coordinates are ``q[:, n * D : (n + 1) * D]``.
-        shape: ``(N, D)`` for a flat q; None for q of shape ``(m, N, D)``.
+        shape: ``(N, D)`` for a flat q; None (or the same) for q of shape ``(m, N, D)``.
         dims: the two coordinates drawn (x-axis, y-axis); default: the two of most spread
             (``plane``).
         center: the position of a fixed central body, length D, marked by a star; None: none.
@@ -247,7 +247,7 @@ def bodies(solution, *, shape=None, dims=None, center=None, ax=None, samples_per
         q, _, _ = _sampled_states(solution, samples_per_step)
     else:
         q = np.asarray(solution, dtype=float)
-    if shape is not None:
+    if shape is not None and q.shape[1:] != tuple(shape):
         shape = tuple(int(n) for n in shape)
         if len(shape) != 2 or q.ndim != 2 or q.shape[1] != shape[0] * shape[1]:
             raise ValueError(f"shape (N, D) must split q of shape (m, d) into d = N * D, got shape {shape} "

@@ -400,3 +400,5 @@ def test_the_second_plot_fits_the_scene():
     assert output.choose_view((3,), q[:, :3]) == ("bodies", (1, 3))
     assert output.choose_view((4,), q, (("q", 0), ("p", 3))) == ("pair", (("q", 0), ("p", 3)))
     assert output.parse_coordinate("q_12") == ("q", 12) and output.parse_coordinate("x1") is None
+    assert specs.load_scene("kepler").center == (0.0, 0.0)  # the Sun, marked in the orbit plot
+    assert specs.load_scene("oscillator").center is None

@@ -162,7 +162,7 @@ def test_bodies_draws_each_body_from_states_of_shape_m_n_d_or_flat_with_the_layo
     q = rng.normal(size=(7, 3, 2))  # 7 saved states of 3 bodies in the plane
     ax = plot.bodies(q, center=(0.0, 0.0))
     flat = plot.bodies(q.reshape(7, 6), shape=(3, 2))
-    for axes in (ax, flat):
+    for axes in (ax, flat, plot.bodies(q, shape=(3, 2))):
         paths = axes.lines[0:6:2]  # a line and a start dot per body
         for n, line in enumerate(paths):
             np.testing.assert_array_equal(np.column_stack(line.get_data()), q[:, n])
