@@ -113,14 +113,16 @@ def state_words(problem):
     return f"d = {problem.d} degrees of freedom"
 
 
-def run_summary(problem, spec, solution, energy, invariants, h, n_steps, times, files):
-    """The summary of a run, for a reader who has not read the papers; returns the text."""
+def run_summary(problem, spec, solution, energy, invariants, h, n_steps, times, files, n_unknowns, krylov):
+    """The summary of a run, for a reader who has not read the papers; returns the text.
+    ``n_unknowns`` (per element) and ``krylov`` (given) decide whether a failure's message
+    mentions --krylov (``failure_words``)."""
     t, status = np.asarray(solution.t), int(solution.status)
     lines = [
         ("scene", f"{problem.name}: {problem.description} ({state_words(problem)})"),
         ("method", specs.describe(spec)),
         ("steps", f"{n_steps} steps of h = {h:g}, t = 0 .. {t[-1]:g}; {len(t)} states saved"),
-        ("status", f"{status} ({gj.Status(status).name}): {gj.status_message(status)}"),
+        ("status", f"{status} ({gj.Status(status).name}): {failure_words(status, n_unknowns, krylov)}"),
     ]
     failed = ~np.isfinite(energy)
     end = int(np.argmax(failed)) if failed.any() else len(t)

@@ -265,11 +265,12 @@ def run_command(options):
     solution, compile_s, run_s = timed(lambda h: integrate(h=h), np.asarray(h, _dtype()))
     energy, invariants = _observe(problem, solution)
     files = _write_run(problem, spec, solution, energy, invariants, h, n_steps, options)
-    print(summary.run_summary(problem, spec, solution, energy, invariants, h, n_steps, (compile_s, run_s), files))
+    n_unknowns = summary.unknowns(method, q0, p0)
+    print(summary.run_summary(problem, spec, solution, energy, invariants, h, n_steps, (compile_s, run_s), files,
+                              n_unknowns, options.krylov))
     status = int(solution.status)
     if status:
-        raise CliError(summary.failure_message(status, summary.unknowns(method, q0, p0), options.krylov, h),
-                       code=EXIT_FAILED_SOLVE)
+        raise CliError(summary.failure_message(status, n_unknowns, options.krylov, h), code=EXIT_FAILED_SOLVE)
     return 0
 
 
