@@ -2,6 +2,7 @@
 
 import csv
 import os
+import re
 
 import numpy as np
 
@@ -63,8 +64,37 @@ def _save(fig, path):
     return path
 
 
-def plot_run(stem, solution, H, args, invariants, title):
-    """The energy (and invariant) error against time, and the orbit (d = 2, 3) or a phase portrait.
+def parse_coordinate(text):
+    """``"q0"``, ``"q_0"`` or ``"p12"`` -> ``("q", 0)`` ...; None if ``text`` names no coordinate."""
+    match = re.fullmatch(r"\s*([qp])_?(\d+)\s*", text.lower())
+    return None if match is None else (match.group(1), int(match.group(2)))
+
+
+def choose_view(shape, q, pair=None):
+    """What the run's second plot draws: ``("pair", (x, y))`` for the coordinates the user
+    named (``--plot q0,q1``); else ``("bodies", (N, D))`` for states of shape (N, 2) or (N, 3),
+    or flat states of d = 2 or 3 (one body); else ``("phase", i)``, q_i against p_i for the
+    coordinate that varies most over the run.
+
+    Args:
+        shape: the scene's state shape, e.g. ``(3, 2)`` or ``(d,)``.
+        q: the saved positions, shape ``(m, d)`` or ``(m, *shape)``.
+    """
+    if pair is not None:
+        return "pair", tuple(pair)
+    if len(shape) == 2 and shape[1] in (2, 3):
+        return "bodies", tuple(shape)
+    if len(shape) == 1 and shape[0] in (2, 3):
+        return "bodies", (1, shape[0])
+    q = np.asarray(q, dtype=float).reshape(len(q), -1)
+    spread = np.nan_to_num(np.nanmax(q, axis=0) - np.nanmin(q, axis=0), nan=-1.0) if np.isfinite(q).any() else [0]
+    return "phase", int(np.argmax(spread))
+
+
+def plot_run(stem, solution, H, args, invariants, title, view, center=None):
+    """The energy (and invariant) error against time, and the second plot ``view``
+    (``choose_view``): the bodies' paths (``plot.bodies``, the central body marked), the
+    named coordinates (``plot.coordinates``) or a phase portrait (``plot.phase_portrait``).
 
     Returns:
         the two PNG paths.
@@ -80,15 +110,20 @@ def plot_run(stem, solution, H, args, invariants, title):
     ax.legend()
     energy_png = _save(fig, f"{stem}_energy.png")
     fig, ax = _figure(5.0, 5.0)
-    d = solution.q.shape[-1]
-    if d in (2, 3):
-        plot.orbit(solution, dims=(0, 1), ax=ax)
-        kind = "orbit"
+    kind, value = view
+    if kind == "bodies":
+        plot.bodies(solution, shape=value, center=center, ax=ax)
+        suffix = "orbit" if value[0] == 1 else "bodies"
+    elif kind == "pair":
+        plot.coordinates(solution, *value, ax=ax)
+        suffix = "".join(f"{part}{index}" for part, index in value)
     else:
-        plot.phase_portrait(solution, index=d // 2, ax=ax)
-        kind = "phase"
+        plot.phase_portrait(solution, index=value, ax=ax)
+        ax.set_xlabel(f"$q_{{{value}}}$ (the coordinate that varies most)")
+        ax.set_ylabel(f"$p_{{{value}}}$")
+        suffix = "phase"
     ax.set_title(title, fontsize=9)
-    return [energy_png, _save(fig, f"{stem}_{kind}.png")]
+    return [energy_png, _save(fig, f"{stem}_{suffix}.png")]
 
 
 def markdown(header, rows, formats=None):

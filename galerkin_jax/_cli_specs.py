@@ -6,6 +6,7 @@ midpoint rule. A scene is a built-in name from ``scenes.SCENES`` or a Python fil
 """
 
 import dataclasses
+import difflib
 import os
 import re
 import runpy
@@ -15,15 +16,23 @@ import numpy as np
 
 import galerkin_jax as gj
 
-from . import scenes
+from . import _checks, scenes
+
+EXIT_BAD_INPUT, EXIT_BAD_OPTION = 1, 2
 
 
 class CliError(Exception):
-    """A message for the user; ``code`` is the exit status."""
+    """A message for the user; ``code`` is the exit status (1 bad input, 2 bad option, 3 a
+    failed solve)."""
 
-    def __init__(self, message, code=1):
+    def __init__(self, message, code=EXIT_BAD_INPUT):
         super().__init__(message)
         self.code = code
+
+
+def _suggest(text, choices):
+    close = difflib.get_close_matches(text, choices, n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,7 +99,7 @@ def kind_key(text):
     key = KIND_ALIASES.get(key, key)
     if key not in KINDS:
         names = ", ".join(f"{k} ({v.name})" for k, v in KINDS.items())
-        raise CliError(f"unknown method {text!r}; choose one of {names}.")
+        raise CliError(f"unknown method {text!r}{_suggest(key, list(KINDS))}; choose one of {names}.", EXIT_BAD_OPTION)
     return key
 
 
@@ -99,7 +108,8 @@ def rule_key(text):
     key = text.strip().lower().replace("_", "-")
     key = RULE_ALIASES.get(key, key)
     if key not in RULES:
-        raise CliError(f"unknown rule {text!r}; choose one of {', '.join(RULES)}.")
+        raise CliError(f"unknown rule {text!r}{_suggest(key, list(RULES))}; choose one of {', '.join(RULES)}.",
+                       EXIT_BAD_OPTION)
     return key
 
 
@@ -107,7 +117,8 @@ def parse_spec(text):
     """``"cg2:gauss3"`` -> ``MethodSpec("cg", 2, "gauss", 3)``; parts left out stay None."""
     match = re.fullmatch(r"\s*([a-z_]+?)(\d*)(?::([a-z_-]+?)(\d*))?\s*", text.lower())
     if match is None:
-        raise CliError(f"cannot read the method {text!r}; write KIND[DEGREE][:RULE[POINTS]], e.g. cg2:gauss3 or mm.")
+        raise CliError(f"cannot read the method {text!r}; write KIND[DEGREE][:RULE[POINTS]], e.g. cg2:gauss3 or mm.",
+                       EXIT_BAD_OPTION)
     kind, degree, rule, points = match.groups()
     return MethodSpec(kind_key(kind), int(degree) if degree else None,
                       rule_key(rule) if rule else None, int(points) if points else None)
@@ -117,28 +128,29 @@ def parse_specs(text):
     """A comma-separated list of specs, each completed with its defaults."""
     specs = [complete(parse_spec(part)) for part in text.split(",") if part.strip()]
     if not specs:
-        raise CliError("--methods: give at least one method, e.g. cg2:gauss3,mm.")
+        raise CliError("--methods: give at least one method, e.g. cg2:gauss3,mm.", EXIT_BAD_OPTION)
     return specs
 
 
 def complete(spec):
     """Fill the defaults: degree 3, the Gauss-Legendre rule with k points for cG and the
-    VIs (Gauss collocation, symplectic) and k + 1 otherwise; fixed rules keep their size."""
+    VIs (Gauss collocation, symplectic) and k + 1 otherwise; fixed rules keep their size.
+    A spec that names no method raises ``CliError`` with exit status 2 (a bad option)."""
     kind = KINDS[spec.kind]
     if kind.least_degree is None:
         if spec.degree is not None or spec.rule is not None or spec.points is not None:
-            raise CliError(f"{kind.name} takes no degree and no quadrature rule.")
+            raise CliError(f"{kind.name} takes no degree and no quadrature rule.", EXIT_BAD_OPTION)
         return spec
     k = DEFAULT_DEGREE if spec.degree is None else spec.degree
     if k < kind.least_degree:
-        raise CliError(f"{kind.name} needs a degree >= {kind.least_degree}, got {k}.")
+        raise CliError(f"{kind.name} needs a degree >= {kind.least_degree}, got {k}.", EXIT_BAD_OPTION)
     key = spec.rule or "gauss"
     rule = RULES[key]
     collocation = spec.kind in ("cg", "vi", "lvi") and key == "gauss"
     points = next(n for n in (spec.points, rule.fixed, k if collocation else k + 1) if n is not None)
     if points < rule.least or (rule.fixed is not None and points != rule.fixed):
         expected = f"exactly {rule.fixed}" if rule.fixed else f"at least {rule.least}"
-        raise CliError(f"the {rule.words} rule has {expected} point(s), got {points}.")
+        raise CliError(f"the {rule.words} rule has {expected} point(s), got {points}.", EXIT_BAD_OPTION)
     return MethodSpec(spec.kind, k, key, points)
 
 
@@ -189,13 +201,23 @@ def tag(spec):
 class Problem(scenes.Scene):
     """A scene as the command line tool runs it: ``scenes.Scene`` plus what a file may add.
 
+    The library sees flat states of shape ``(d,)``; a scene file's ``q0`` of another shape,
+    e.g. ``(N, 3)`` for N bodies, is flattened here, and its functions receive the states in
+    that shape (``_flat_functions``).
+
     Attributes:
         args: passed to ``H(q, p, args)`` when not None.
         L: ``L(q, qdot)`` (or ``L(q, qdot, args)``) for LagrangianVI, else None.
+        shape: the shape of the scene's ``q0``, e.g. ``(N, 3)``; ``(d,)`` for a flat state.
     """
 
     args: Any = None
     L: Optional[Callable] = None
+    shape: tuple = ()
+
+    @property
+    def d(self):
+        return self.q0.shape[0]
 
 
 DEFAULT_FILE_H, DEFAULT_FILE_STEPS = 0.1, 1000
@@ -205,7 +227,7 @@ def load_scene(text):
     """The built-in scene called ``text`` or the scene defined in the Python file ``text``."""
     if text in scenes.SCENES:
         scene = scenes.get(text)
-        return Problem(**{f.name: getattr(scene, f.name) for f in dataclasses.fields(scene)})
+        return Problem(**{f.name: getattr(scene, f.name) for f in dataclasses.fields(scene)}, shape=scene.q0.shape)
     if text.endswith(".py") or os.path.isfile(text):
         return _load_file(text)
     raise CliError(f"unknown scene {text!r}. The built-in scenes are {', '.join(scenes.SCENES)}; "
@@ -229,24 +251,73 @@ def _load_file(path):
     invariants = namespace.get("invariants") or {}
     if not isinstance(invariants, dict) or not all(callable(f) for f in invariants.values()):
         raise CliError(f"scene file {path!r}: invariants must be a dict name -> I(q, p).")
-    q0, p0 = (_vector(namespace[name], name, path) for name in ("q0", "p0"))
-    try:
-        h, n_steps = float(namespace.get("h", DEFAULT_FILE_H)), int(namespace.get("n_steps", DEFAULT_FILE_STEPS))
-    except (TypeError, ValueError) as error:
-        raise CliError(f"scene file {path!r}: h must be a number and n_steps an integer ({error}).") from None
+    q0, p0 = (_array(namespace[name], name, path) for name in ("q0", "p0"))
+    if q0.shape != p0.shape:
+        raise CliError(f"scene file {path!r}: q0 and p0 must have the same shape, got {q0.shape} and {p0.shape}.")
+    h, n_steps = _step_size(namespace.get("h", DEFAULT_FILE_H), path), _count(namespace.get("n_steps",
+                                                                                              DEFAULT_FILE_STEPS), path)
+    center = namespace.get("center")
+    if center is not None:
+        center = _array(center, "center", path)
+        if center.shape != q0.shape[-1:]:
+            raise CliError(f"scene file {path!r}: center must be a point of shape {q0.shape[-1:]}, got {center.shape}.")
+    H, L, invariants = _flat_functions(q0.shape, namespace["H"], namespace.get("L"), invariants)
     stem = os.path.splitext(os.path.basename(path))[0]
     return Problem(
-        name=stem, description=str(namespace.get("description", f"user scene {path}")), H=namespace["H"],
-        q0=q0, p0=p0, h=h, n_steps=n_steps, invariants=dict(invariants),
-        exact=namespace.get("exact"), args=namespace.get("args"), L=namespace.get("L"),
+        name=stem, description=str(namespace.get("description", f"user scene {path}")), H=H, q0=q0.ravel(),
+        p0=p0.ravel(), h=h, n_steps=n_steps, invariants=invariants, exact=_flat_exact(namespace.get("exact"), q0.shape),
+        args=namespace.get("args"), L=L, shape=q0.shape, center=None if center is None else tuple(center),
     )
 
 
-def _vector(value, name, path):
+def _array(value, name, path):
     try:
         x = np.atleast_1d(np.asarray(value, dtype=float))
     except (TypeError, ValueError) as error:
-        raise CliError(f"scene file {path!r}: {name} must be a vector of numbers ({error}).") from None
-    if x.ndim != 1:
-        raise CliError(f"scene file {path!r}: {name} must be a 1-D vector, got shape {x.shape}.")
+        raise CliError(f"scene file {path!r}: {name} must be an array of numbers ({error}).") from None
+    if name in ("q0", "p0"):  # the library's check of the initial state: shape and finiteness
+        try:
+            _checks.check_state(x.ravel(), x.ravel())
+        except ValueError as error:
+            raise CliError(f"scene file {path!r}: {str(error).replace('q0', name, 1)}") from None
+    elif not np.all(np.isfinite(x)):
+        raise CliError(f"scene file {path!r}: {name} must be finite, got {x}.")
     return x
+
+
+def _step_size(value, path):
+    """The scene's ``h``, through the library's check (finite, > 0)."""
+    try:
+        _checks.check_step_size(float(value))
+    except (TypeError, ValueError) as error:
+        raise CliError(f"scene file {path!r}: {error}" if "h must" in str(error)
+                       else f"scene file {path!r}: h must be a number, got {value!r}.") from None
+    return float(value)
+
+
+def _count(value, path):
+    """The scene's ``n_steps``: an integer >= 1."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise CliError(f"scene file {path!r}: n_steps must be an integer >= 1, got {value!r}.")
+    return int(value)
+
+
+def _flat_functions(shape, H, L, invariants):
+    """``(H, L, invariants)``, the user's functions of states of ``shape``, as functions of
+    flat states ``(d,)``; L None stays None."""
+    if len(shape) == 1:
+        return H, L, dict(invariants)
+    wrap = lambda f: None if f is None else (lambda q, p, *args: f(q.reshape(shape), p.reshape(shape), *args))
+    return wrap(H), wrap(L), {name: wrap(f) for name, f in invariants.items()}
+
+
+def _flat_exact(exact, shape):
+    """``exact(t)`` with its states flattened to ``(..., d)``."""
+    if exact is None or len(shape) == 1:
+        return exact
+
+    def flat(t):
+        q, p = exact(t)
+        return tuple(np.reshape(x, np.shape(x)[: np.ndim(x) - len(shape)] + (-1,)) for x in (q, p))
+
+    return flat

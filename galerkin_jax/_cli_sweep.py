@@ -7,10 +7,11 @@ import numpy as np
 import galerkin_jax as gj
 
 from . import _cli_specs as specs
+from . import _cli_summary as summary
 from ._cli_specs import CliError
 
 
-FORMATS = {"h": "g", "q0 scale": "g", "Newton per element": ".2f"}
+FORMATS = {"h": "g", "q0 scale": "g", "Newton per step": ".2f"}
 
 
 def groups(method_specs):
@@ -66,7 +67,7 @@ def rows(group, hs, scales, result, n_steps):
         if final is not None:
             row["final error"] = float(final[i])
         row["error estimate"] = float(estimate[i])
-        row["Newton per element"] = round(int(result.num_newton_iterations[i]) / n_steps, 2)
+        row["Newton per step"] = round(int(result.num_newton_iterations[i]) / n_steps, 2)
         row["max Newton"] = int(result.max_newton_iterations[i])
         table.append(row)
     return table
@@ -97,9 +98,31 @@ def notes(problem, table, n_steps):
     if problem.exact is not None:
         lines.append("final error: max-norm error of (q, p) at t = n_steps h against the exact solution "
                      "(unscaled initial state only).")
-    lines.append("error estimate: the largest estimated local error of one element (max-norm over q, p).")
-    lines.append("Newton per element: mean iterations per element; max Newton: the most in one element.")
+    lines.append("error estimate: the largest estimated local error of one step (max-norm over q, p); the final "
+                 f"error accumulates such errors over the {n_steps} steps.")
+    lines.append("Newton per step: mean iterations per step; max Newton: the most in one step.")
     for status in sorted({row["status"] for row in table} - {0}):
         count = sum(row["status"] == status for row in table)
         lines.append(f"status {status}: {count} configuration(s) failed: {gj.status_message(status)}")
     return "\n".join(lines)
+
+
+def failures(table, n_unknowns, krylov):
+    """One line on the failed configurations (for the exit status 3), or None if none failed.
+
+    Args:
+        n_unknowns: spec -> unknowns per element, for the message's advice on --krylov.
+    """
+    failed = [row for row in table if row["status"] != 0]
+    if not failed:
+        return None
+    parts = []
+    for status in sorted({row["status"] for row in failed}):
+        mine = [row for row in failed if row["status"] == status]
+        largest = max(n_unknowns[row["spec"]] for row in mine)
+        where = ", ".join(f"{row['method']} at h = {row['h']:g}" for row in mine[:3]) + (", ..." if len(mine) > 3 else "")
+        parts.append(f"status {status} ({gj.Status(status).name}) in {len(mine)} ({where}): "
+                     f"{summary.failure_words(status, largest, krylov)}")
+    more = " or --krylov" if any(n > summary.DENSE_LIMIT for n in n_unknowns.values()) and not krylov else ""
+    return (f"{len(failed)} of {len(table)} configurations failed, their diagnostics shown as '-': {'; '.join(parts)} "
+            f"Try smaller --step-sizes{more}.")

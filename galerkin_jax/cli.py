@@ -1,8 +1,11 @@
 """The ``galerkin-jax`` command line tool: ``run``, ``sweep`` and ``reproduce``.
 
 ``main(argv)`` returns the exit status: 0 success, 1 an error in the input (unknown scene,
-a scene file that raises or lacks H, q0 or p0, input the library rejects), 2 a bad
-option, 3 an implicit solve that failed (``gj.status_message`` says why).
+a scene file that raises, lacks H, q0 or p0, or holds values the library rejects, such as a
+non-finite q0 or h <= 0: checked before anything is written), 2 a bad option (a method spec
+that names no method included), 3 an implicit solve that failed in ``run`` or in any
+configuration of ``sweep`` (``gj.status_message`` says why). An error is one line on stderr,
+``galerkin-jax: error: ...``; argparse's own messages for a bad option come with the usage.
 """
 
 import argparse
@@ -19,31 +22,21 @@ import galerkin_jax as gj
 
 from . import _cli_output as output
 from . import _cli_specs as specs
+from . import _cli_summary as summary
 from . import _cli_sweep as sweeps
-from ._cli_specs import CliError
+from ._cli_specs import EXIT_BAD_OPTION, CliError
 
 EXIT_FAILED_SOLVE = 3
 DENSE_LIMIT = 2 * 10**7  # numbers kept for dense output
 DEFAULT_SCENE = "kepler"
 DEFAULT_OUT, DEFAULT_REPRODUCE_OUT = "galerkin-jax-output", "galerkin-jax-reproduce"
 DEFAULT_SWEEP_METHODS = "cg2:gauss2,cg2:lobatto3,cg2:gauss4,dg1:gauss2,dgrad"
-HINTS = {
-    "cg": "cG(k) conserves H to round-off when its rule integrates the DH terms exactly (polynomial H, enough "
-          "points) [GBS, Thm. 3.1]; otherwise expect a small error, bounded or slowly drifting",
-    "cg_gauss": "cG(k) with k Gauss points is Gauss collocation, a symplectic method: "
-                "the energy error oscillates and does not drift",
-    "dg": "dG(k) is dissipative [GBS, Prop. 3.1]: the energy error grows as the scheme damps",
-    "vi": "a variational integrator is symplectic: the energy error oscillates and does not drift",
-    "mm": "energy and angular momentum are conserved to round-off for H = |p|^2/2m + V(|q|) (central forces)",
-    "dgrad": "the energy is conserved to round-off",
-}
-HINTS["lvi"] = HINTS["vi"]
-
 SCENES_AND_METHODS = """\
 SCENE is one of oscillator, quartic, kepler, pendulum, fput, or the path of a Python file
 that defines H(q, p), q0 and p0 (optionally h, n_steps, args -- then H(q, p, args) --,
-invariants = {name: I(q, p)}, description, exact(t) -> (q, p), and L(q, qdot) for
-LagrangianVI).
+invariants = {name: I(q, p)}, description, exact(t) -> (q, p), center (a fixed central
+body's position), and L(q, qdot) for LagrangianVI). q0 and p0 may have the shape (N, 2) or
+(N, 3) of N bodies; H then receives them in that shape, and `run` draws the bodies' paths.
 
 A method is KIND[DEGREE][:RULE[POINTS]]: KIND is cg, dg, vi (GalerkinVI), lvi
 (LagrangianVI), mm (ModifiedMidpoint) or dgrad (DiscreteGradient); RULE is gauss
@@ -81,7 +74,7 @@ def console(argv=None):
     folder = compile_cache_folder()
     if folder:
         jax.config.update("jax_compilation_cache_dir", folder)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # ours take 0.3 to 2 s
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # cache every program
     return main(argv)
 
 
@@ -115,6 +108,13 @@ def _floats(text):
     if not values or not all(np.isfinite(v) and v > 0 for v in values):
         raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
     return values
+
+
+def _pair(text):
+    parts = [output.parse_coordinate(part) for part in text.split(",")]
+    if len(parts) != 2 or None in parts:
+        raise argparse.ArgumentTypeError(f"expected two coordinates such as q0,q1 or q2,p2, got {text!r}")
+    return tuple(parts)
 
 
 def _positive(kind):
@@ -166,6 +166,10 @@ def build_parser():
                      help="save every N-th state (default 1)")
     run.add_argument("--out", **out)
     run.add_argument("--format", choices=("npz", "csv"), default="npz", help="trajectory file format (default npz)")
+    run.add_argument("--plot", type=_pair, metavar="X,Y",
+                     help="the coordinates of the second plot, e.g. q0,q1 or q2,p2 (0-based, as the CSV columns; "
+                          "default: the bodies' paths for states of shape (N, 2) or (N, 3) and d = 2, 3, else q_i "
+                          "against p_i for the coordinate that varies most)")
     run.set_defaults(command=run_command)
 
     sweep = commands.add_parser("sweep", help="methods x step sizes in one batched call; a table and plots",
@@ -223,35 +227,50 @@ def _dtype():
 
 def _method_spec(options):
     """The spec of ``--method``, with ``--degree``, ``--rule`` and ``--points`` taking precedence."""
-    spec = specs.parse_spec(options.method)
-    pick = lambda option, default: default if option is None else option
-    rule = None if options.rule is None else specs.rule_key(options.rule)
-    return specs.complete(specs.MethodSpec(spec.kind, pick(options.degree, spec.degree), pick(rule, spec.rule),
-                                           pick(options.points, spec.points)))
+    try:
+        spec = specs.parse_spec(options.method)
+        pick = lambda option, default: default if option is None else option
+        rule = None if options.rule is None else specs.rule_key(options.rule)
+        return specs.complete(specs.MethodSpec(spec.kind, pick(options.degree, spec.degree), pick(rule, spec.rule),
+                                               pick(options.points, spec.points)))
+    except CliError as error:
+        raise CliError(f"--method: {error}", error.code) from None
+
+
+def _check_plot(pair, d):
+    for part, index in pair or ():
+        if index >= d:
+            raise CliError(f"--plot: {part}{index} does not exist; the scene has q0 .. q{d - 1} and p0 .. p{d - 1}.",
+                           EXIT_BAD_OPTION)
 
 
 def run_command(options):
-    """``galerkin-jax run``: integrate, write the trajectory and the plots, print the summary."""
-    problem = specs.load_scene(options.scene or DEFAULT_SCENE)
+    """``galerkin-jax run``: integrate, write the trajectory and the plots, print the summary.
+    Every input is checked before the integration, and nothing is written before it ran."""
     spec = _method_spec(options)
+    problem = specs.load_scene(options.scene or DEFAULT_SCENE)
     if spec.kind == "lvi" and problem.L is None:
         raise CliError("LagrangianVI integrates L(q, qdot): give a scene file that defines L.")
     h, n_steps = options.step_size or problem.h, options.steps or problem.n_steps
     if n_steps % options.save_every:
-        raise CliError(f"--steps ({n_steps}) must be a multiple of --save-every ({options.save_every}).")
+        raise CliError(f"--steps ({n_steps}) must be a multiple of --save-every ({options.save_every}).",
+                       EXIT_BAD_OPTION)
+    _check_plot(options.plot, problem.d)
+    method = specs.build(spec)
+    q0, p0 = problem.q0.astype(_dtype()), problem.p0.astype(_dtype())
     integrate = functools.partial(
-        gj.integrate, problem.L if spec.kind == "lvi" else problem.H, problem.q0.astype(_dtype()),
-        problem.p0.astype(_dtype()), method=specs.build(spec), n_steps=n_steps, args=problem.args,
-        save_every=options.save_every, dense=_dense(spec, n_steps, problem.q0.shape[0]), progress=options.progress,
-        krylov=options.krylov)
+        gj.integrate, problem.L if spec.kind == "lvi" else problem.H, q0, p0, method=method, n_steps=n_steps,
+        args=problem.args, save_every=options.save_every, dense=_dense(spec, n_steps, problem.d),
+        progress=options.progress, krylov=options.krylov)
     solution, compile_s, run_s = timed(lambda h: integrate(h=h), np.asarray(h, _dtype()))
     energy, invariants = _observe(problem, solution)
     files = _write_run(problem, spec, solution, energy, invariants, h, n_steps, options)
-    print(run_summary(problem, spec, solution, energy, invariants, h, (compile_s, run_s), files))
+    n_unknowns = summary.unknowns(method, q0, p0)
+    print(summary.run_summary(problem, spec, solution, energy, invariants, h, n_steps, (compile_s, run_s), files,
+                              n_unknowns, options.krylov))
     status = int(solution.status)
     if status:
-        raise CliError(f"the solve failed (status {status}): {gj.status_message(status)} "
-                       f"Try a smaller --step-size than {h:g}.", code=EXIT_FAILED_SOLVE)
+        raise CliError(summary.failure_message(status, n_unknowns, options.krylov, h), code=EXIT_FAILED_SOLVE)
     return 0
 
 
@@ -281,81 +300,36 @@ def _write_run(problem, spec, solution, energy, invariants, h, n_steps, options)
     columns = dict(t=solution.t, q=solution.q, p=solution.p, energy=energy,
                    **{f"invariant_{name}": value for name, value in invariants.items()})
     meta = dict(scene=problem.description, method=specs.describe(spec), h=h, n_steps=n_steps,
-                save_every=options.save_every, status=status, status_message=gj.status_message(status))
+                save_every=options.save_every, status=status, status_message=gj.status_message(status),
+                state_shape=np.asarray(problem.shape or problem.q0.shape))
     path = f"{stem}.{options.format}"
     files = [output.write_trajectory(path, {k: np.asarray(v) for k, v in columns.items()}, meta)]
     title = f"{problem.name}, {specs.short(spec)}, h = {h:g}"
-    return files + output.plot_run(stem, solution, problem.H, problem.args, problem.invariants, title)
-
-
-def _hint(spec):
-    gauss = spec.kind == "cg" and spec.rule == "gauss" and spec.points == spec.degree
-    return HINTS["cg_gauss" if gauss else spec.kind]
-
-
-def run_summary(problem, spec, solution, energy, invariants, h, times, files):
-    """The summary of a run, for a reader who has not read the papers; returns the text."""
-    t, status = np.asarray(solution.t), int(solution.status)
-    n_steps, d = round(float(t[-1]) / h), problem.q0.shape[0]
-    lines = [
-        ("scene", f"{problem.name}: {problem.description} (d = {d} degrees of freedom)"),
-        ("method", specs.describe(spec)),
-        ("steps", f"{n_steps} elements of h = {h:g}, t = 0 .. {t[-1]:g}; {len(t)} states saved"),
-        ("status", f"{status} ({gj.Status(status).name}): {gj.status_message(status)}"),
-    ]
-    failed = ~np.isfinite(energy)
-    end = int(np.argmax(failed)) if failed.any() else len(t)
-    if end < len(t):
-        lines.append(("", f"the run failed between t = {t[end - 1]:g} and t = {t[end]:g}; the later states are NaN"))
-    measure = "max |H(t) - H(0)| / |H(0)|" if energy[0] != 0 else "max |H(t) - H(0)|"
-    change = lambda values: np.max(output.relative_change(values[:end], values[0]))
-    lines.append(("energy", f"{measure} = {change(energy):.2e}   (H(0) = {energy[0]:.6g})"))
-    lines += [(name, f"max relative change {change(v):.2e}   (conserved by the exact flow)")
-              for name, v in invariants.items()]
-    if status == 0:
-        lines += _accuracy_lines(problem, solution)
-    total, largest = int(solution.stats["num_newton_iterations"]), int(solution.stats["max_newton_iterations"])
-    lines.append(("Newton", f"{total} iterations, {total / max(n_steps, 1):.2f} per element, "
-                            f"at most {largest} in one element"))
-    compile_s, run_s = times
-    lines.append(("time", f"compile {compile_s:.2f} s, run {run_s:.3f} s ({1e6 * run_s / max(n_steps, 1):.1f} us per "
-                          f"element), {np.dtype(energy.dtype).name} on {jax.devices()[0].platform}"))
-    lines += [("files" if i == 0 else "", f"{path} ({output.size_text(path)})") for i, path in enumerate(files)]
-    text = "\n".join(f"{key:<9}{value}" for key, value in lines)
-    energy_png = next(f for f in files if f.endswith("_energy.png"))
-    return text if status else text + f"\nLook at {energy_png}: {_hint(spec)}."
-
-
-def _accuracy_lines(problem, solution):
-    """The error against the exact solution (where the scene has one) and the error estimate."""
-    lines, t_end = [], float(solution.t[-1])
-    if problem.exact is not None:
-        q, p = problem.exact(t_end)
-        error = max(np.max(np.abs(np.asarray(solution.q[-1]) - q)), np.max(np.abs(np.asarray(solution.p[-1]) - p)))
-        lines.append(("accuracy", f"error against the exact solution at t = {t_end:g}: {error:.2e} (max-norm)"))
-    estimate = float(solution.error_estimate)
-    size = np.max(np.abs(np.concatenate([np.asarray(solution.q), np.asarray(solution.p)], axis=1)))
-    verdict = "; the steps are too large to mean much" if estimate >= 0.1 * size else ""
-    lines.append(("estimate", f"largest estimated local error of one element: {estimate:.2e} (max-norm; "
-                              f"{estimate / size:.1e} of the largest |q_i|, |p_i|{verdict})"))
-    return lines
+    view = output.choose_view(problem.shape or problem.q0.shape, solution.q, options.plot)
+    return files + output.plot_run(stem, solution, problem.H, problem.args, problem.invariants, title, view,
+                                   problem.center)
 
 
 def sweep_command(options):
     """``galerkin-jax sweep``: methods x step sizes (x initial states) batched, one ``gj.sweep``
-    per kind and degree; writes a markdown and a CSV table and two plots, prints the table."""
+    per kind and degree; writes a markdown and a CSV table and two plots, prints the table.
+    Exits 3 when any configuration failed (its row shows NaN diagnostics)."""
+    try:
+        method_specs = specs.parse_specs(options.methods)
+    except CliError as error:
+        raise CliError(f"--methods: {error}", error.code) from None
     problem = specs.load_scene(options.scene or DEFAULT_SCENE)
-    method_specs = specs.parse_specs(options.methods)
     hs = options.step_sizes or [problem.h * f for f in (2.0, 1.0, 0.5, 0.25)]
     n_steps = options.steps or problem.n_steps
     states = [((s * problem.q0).astype(_dtype()), problem.p0.astype(_dtype())) for s in options.q0_scale]
-    rows, times = [], np.zeros(2)
+    rows, times, n_unknowns = [], np.zeros(2), {}
     groups = sweeps.groups(method_specs)
     for group in groups:
         result, *seconds = timed(*sweeps.sweep_call(problem, group, hs, states, options.q0_scale, n_steps, _dtype(),
                                                     options.progress, options.krylov))
         times += seconds
         rows += sweeps.rows(group, hs, options.q0_scale, result, n_steps)
+        n_unknowns.update({spec: summary.unknowns(specs.build(spec), *states[0]) for spec in group})
     rows.sort(key=lambda row: method_specs.index(row["spec"]))
     header = [c for c in rows[0] if c != "spec" and (c != "q0 scale" or len(states) > 1)]
     table = [[row[c] for c in header] for row in rows]
@@ -372,6 +346,9 @@ def sweep_command(options):
     print(f"time     compile {times[0]:.2f} s, run {times[1]:.3f} s")
     print("files    " + "\n         ".join(f"{p} ({output.size_text(p)})" for p in files))
     print(f"Look at {files[2]}: the energy error of each method (rows) at each step size (columns).")
+    failed = sweeps.failures(rows, n_unknowns, options.krylov)
+    if failed:
+        raise CliError(failed, code=EXIT_FAILED_SOLVE)
     return 0
 
 

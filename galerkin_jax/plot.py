@@ -28,17 +28,22 @@ def _axes(ax):
 
 
 def _one_run(solution):
-    """``(t, q, p)`` of one run as NumPy arrays; a batched (sweep) solution is refused."""
+    """``(t, q, p)`` of one run as NumPy arrays, q and p of shape ``(m, ...)`` (flat ``(m, d)``
+    or e.g. ``(m, N, 3)``); a batched (sweep) solution is refused."""
     for name in ("t", "q", "p"):
         if not hasattr(solution, name):
             raise TypeError(f"solution must have fields t, q, p (a gj.Solution), got {type(solution).__name__}.")
     t, q, p = (np.asarray(x) for x in (solution.t, solution.q, solution.p))
-    if t.ndim != 1 or q.ndim != 2 or q.shape != p.shape or q.shape[0] != t.shape[0]:
+    if t.ndim != 1 or q.ndim < 2 or q.shape != p.shape or q.shape[0] != t.shape[0]:
         raise ValueError(
             f"solution: one run expected (t of shape (m,), q and p of shape (m, d)), got t {t.shape}, "
             f"q {q.shape}; index a batched solution first."
         )
     return t, q, p
+
+
+def _flat(x):
+    return x.reshape(x.shape[0], -1)
 
 
 def _values(fn, q, p):
@@ -158,6 +163,7 @@ def orbit(solution, *, dims=(0, 1), ax=None, label=None, samples_per_step=8):
     """
     ax = _axes(ax)
     q, _, markevery = _sampled_states(solution, samples_per_step)
+    q = _flat(q)
     i, j = dims
     if not (0 <= i < q.shape[1] and 0 <= j < q.shape[1]):
         raise ValueError(f"dims must index q of dimension {q.shape[1]}, got {dims}.")
@@ -176,11 +182,97 @@ def phase_portrait(solution, *, index=0, ax=None, label=None, samples_per_step=8
     """
     ax = _axes(ax)
     q, p, markevery = _sampled_states(solution, samples_per_step)
+    q, p = _flat(q), _flat(p)
     if not 0 <= index < q.shape[1]:
         raise ValueError(f"index must be in [0, {q.shape[1]}), got {index}.")
     _trajectory(ax, q[:, index], p[:, index], markevery, label)
     ax.set_xlabel(f"$q_{{{index + 1}}}$")
     ax.set_ylabel(f"$p_{{{index + 1}}}$")
+    return ax
+
+
+def coordinates(solution, x, y, *, ax=None, label=None, samples_per_step=8):
+    """Any two coordinates of the flat state against each other, e.g. ``x=("q", 0)``,
+    ``y=("p", 2)`` (0-based, as the columns ``q_0``, ``p_2`` of the command line's CSV);
+    dense output as in ``orbit``.
+
+    Returns:
+        the Axes.
+    """
+    ax = _axes(ax)
+    q, p, markevery = _sampled_states(solution, samples_per_step)
+    states = {"q": _flat(q), "p": _flat(p)}
+    columns = []
+    for part, index in (x, y):
+        if part not in states or not 0 <= index < states[part].shape[1]:
+            raise ValueError(f"x and y must be ('q' or 'p', index < {q.shape[1]}), got {x} and {y}.")
+        columns.append(states[part][:, index])
+    _trajectory(ax, *columns, markevery, label)
+    ax.set_xlabel(f"${x[0]}_{{{x[1]}}}$")
+    ax.set_ylabel(f"${y[0]}_{{{y[1]}}}$")
+    return ax
+
+
+_AXES = "xyz"
+_MAX_LABELLED_BODIES = 10  # a legend of more bodies would hide the paths
+
+
+def plane(q):
+    """The two coordinates (of D) in which the bodies' positions ``q`` ``(m, N, D)`` spread the
+    most (largest range over the run), in increasing order: the plane to draw their paths in."""
+    q = np.asarray(q, dtype=float)
+    if q.shape[-1] <= 2:
+        return 0, 1
+    spread = np.nanmax(q, axis=(0, 1)) - np.nanmin(q, axis=(0, 1))
+    return tuple(sorted(int(i) for i in np.argsort(-np.nan_to_num(spread, nan=-1.0), kind="stable")[:2]))
+
+
+def bodies(solution, *, shape=None, dims=None, center=None, ax=None, samples_per_step=8):
+    """The paths of N bodies in a plane: each body's position ``q[n]`` in D = 2 or 3 dimensions.
+
+    Args:
+        solution: one run (``gj.Solution``, with dense output drawn as in ``orbit``) or the
+            positions alone, an array ``q``. Either of shape ``(m, N, D)``, or flat ``(m, N * D)``
+            with ``shape=(N, D)``: body n's coordinates are ``q[:, n * D : (n + 1) * D]``.
+        shape: ``(N, D)`` for a flat q; None (or the same) for q of shape ``(m, N, D)``.
+        dims: the two coordinates drawn (x-axis, y-axis); default: the two of most spread
+            (``plane``).
+        center: the position of a fixed central body, length D, marked by a star; None: none.
+    Returns:
+        the Axes (equal aspect ratio): a line per body, a dot at its start, a legend of the
+        bodies (up to 10).
+    """
+    ax = _axes(ax)
+    if hasattr(solution, "q"):
+        q, _, _ = _sampled_states(solution, samples_per_step)
+    else:
+        q = np.asarray(solution, dtype=float)
+    if shape is not None and q.shape[1:] != tuple(shape):
+        shape = tuple(int(n) for n in shape)
+        if len(shape) != 2 or q.ndim != 2 or q.shape[1] != shape[0] * shape[1]:
+            raise ValueError(f"shape (N, D) must split q of shape (m, d) into d = N * D, got shape {shape} "
+                             f"for q of shape {q.shape}.")
+        q = q.reshape(q.shape[0], *shape)
+    if q.ndim != 3 or q.shape[2] not in (2, 3):
+        raise ValueError(f"q must have shape (m, N, D) with D = 2 or 3 (or flat with shape=(N, D)), got {q.shape}.")
+    n_bodies, D = q.shape[1:]
+    i, j = plane(q) if dims is None else dims
+    if not (0 <= i < D and 0 <= j < D and i != j):
+        raise ValueError(f"dims must be two different coordinates of D = {D}, got {dims}.")
+    labelled = n_bodies <= _MAX_LABELLED_BODIES
+    for n in range(n_bodies):
+        (line,) = ax.plot(q[:, n, i], q[:, n, j], lw=1.0, label=f"body {n + 1}" if labelled and n_bodies > 1 else None)
+        ax.plot(q[:1, n, i], q[:1, n, j], "o", color=line.get_color(), markersize=4)
+    if center is not None:
+        center = np.asarray(center, dtype=float)
+        if center.shape != (D,):
+            raise ValueError(f"center must have shape ({D},), got {center.shape}.")
+        ax.plot([center[i]], [center[j]], "*", color="black", markersize=12, label="central body")
+    ax.set_xlabel(f"${_AXES[i]}$")
+    ax.set_ylabel(f"${_AXES[j]}$")
+    ax.set_aspect("equal", adjustable="datalim")
+    if ax.get_legend_handles_labels()[1]:
+        ax.legend(fontsize=7)
     return ax
 
 

@@ -24,6 +24,8 @@ class Scene:
         h, n_steps: a step size and run length that show the scene's behaviour.
         invariants: ``{name: I(q, p)}`` conserved by the exact flow besides H.
         exact: ``t -> (q, p)`` (NumPy) where the exact solution is known, else None.
+        center: the position of a fixed central body (the Sun of the Kepler problem), drawn
+            in the orbit plot; None where the scene has none.
     """
 
     name: str
@@ -35,6 +37,7 @@ class Scene:
     n_steps: int
     invariants: dict = dataclasses.field(default_factory=dict)
     exact: Optional[Callable] = None
+    center: Optional[tuple] = None
 
 
 def _angular_momentum(q, p):
@@ -99,7 +102,7 @@ def kepler(e=0.6):
         H=lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q),
         q0=q0, p0=p0, h=0.05, n_steps=1000,
         invariants={"L": _angular_momentum},
-        exact=lambda t: kepler_orbit(t, e),
+        exact=lambda t: kepler_orbit(t, e), center=(0.0, 0.0),
     )
 
 

@@ -4,13 +4,16 @@ a bad option) and in-process through ``cli.main`` for the rest."""
 import os
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import jax
 import numpy as np
 import pytest
 
 import galerkin_jax as gj
+from galerkin_jax import _cli_output as output
 from galerkin_jax import _cli_specs as specs
+from galerkin_jax import _cli_summary as summary
 from galerkin_jax import _cli_sweep as sweeps
 from galerkin_jax import cli, reproduce
 
@@ -47,6 +50,25 @@ h, n_steps = 0.5, 4
 '''
 
 
+# the figure-eight of three equal masses (Chenciner and Montgomery), positions of shape (3, 2):
+# H and the invariant index the bodies' axis, so that a flat state would fail
+THREE_BODY_SCENE = '''
+import jax.numpy as jnp
+import numpy as np
+description = "figure-eight three-body choreography"
+def H(q, p):
+    r = q[:, None, :] - q[None, :, :]
+    distance = jnp.sqrt(jnp.sum(r ** 2, axis=-1) + jnp.eye(3))
+    return 0.5 * jnp.sum(p ** 2) - 0.5 * jnp.sum((1.0 - jnp.eye(3)) / distance)
+x1 = np.array([0.97000436, -0.24308753])
+v3 = np.array([-0.93240737, -0.86473146])
+q0 = np.stack([x1, -x1, np.zeros(2)])
+p0 = np.stack([-v3 / 2, -v3 / 2, v3])
+h, n_steps = 0.02, 40
+invariants = {"P": lambda q, p: jnp.sum(p, axis=0)}
+'''
+
+
 def galerkin_jax(*argv, cwd, cache=""):
     """``python -m galerkin_jax ARGV`` in ``cwd``, its compilation cache in ``cache`` (none
     by default: the suite writes nothing to the user's cache); returns the CompletedProcess."""
@@ -77,7 +99,17 @@ def test_default_run_writes_trajectory_plots_and_summary(tmp_path):
     out = done.stdout
     assert "cG(3): continuous Galerkin, degree 3 [GBS, eq. (16)], 3-point Gauss-Legendre rule" in out
     assert "compile" in out and "Newton" in out and "kepler_cG3-gauss3.npz (" in out
-    assert out.strip().splitlines()[-1].startswith(f"Look at {os.path.join('out', 'kepler_cG3-gauss3_energy.png')}")
+    assert "1000 steps of h = 0.05" in out and "per step" in out and "element" not in out
+    line = lambda key: next(x for x in out.splitlines() if x.startswith(key))
+    global_error = float(line("global   error at t = 50 against the exact solution: ").split(": ")[1].split()[0])
+    local = float(line("local    estimated error of one step, the largest of the run: ").split(": ")[1].split()[0])
+    # the global error accumulates over 1000 steps (measured 9.5e-6) far above one step's (1.2e-8)
+    assert global_error == pytest.approx(np.abs(np.concatenate([data["q"][-1], data["p"][-1]]) - np.concatenate(
+        specs.load_scene("kepler").exact(50.0))).max(), rel=1e-2)
+    assert 100 * local < global_error
+    last = out.strip().splitlines()[-1]
+    assert last.startswith(f"Look at {os.path.join('out', 'kepler_cG3-gauss3_energy.png')}: the energy error is ")
+    assert "no drift. As expected: " in last and "symplectic" in last  # the numbers agree with the method
 
 
 def test_a_run_again_with_another_step_size_loads_its_programs_from_the_cache(tmp_path):
@@ -151,20 +183,27 @@ def test_user_scene_file_with_args_and_invariants(tmp_path, capsys):
     assert jax.config.read("jax_enable_x64")  # main restores the caller's setting
 
 
-def test_failed_solve_exits_3_with_the_status_message(tmp_path, capsys):
+def test_failed_solve_exits_3_with_the_status_message_and_no_krylov_advice_for_2_unknowns(tmp_path, capsys):
     scene = write(tmp_path, "blowup.py", NO_SOLUTION_SCENE)
     assert cli.main(["run", scene, "--out", str(tmp_path / "out")]) == cli.EXIT_FAILED_SOLVE
     captured = capsys.readouterr()
     assert "the run failed between t = 0 and t = 1" in captured.out
-    assert captured.err.startswith("galerkin-jax: error: the solve failed (status 1)")
-    assert gj.status_message(gj.Status.NEWTON_MAX_ITERATIONS) in captured.err
+    assert captured.err.startswith("galerkin-jax: error: the solve failed (status 1, NEWTON_MAX_ITERATIONS)")
+    assert captured.err.count("\n") == 1 and captured.err.rstrip().endswith("Try a smaller --step-size than 1.")
+    # cG(3) of d = 1: 6 unknowns per element, far below the dense limit: Newton-Krylov cannot help
+    assert "rylov" not in captured.err and "rylov" not in captured.out
+    first = gj.status_message(gj.Status.NEWTON_MAX_ITERATIONS).split(". ")[0]
+    assert first in captured.err
 
 
 def test_krylov_solves_a_stiff_chain_that_fails_without_it(tmp_path, capsys):
     scene = write(tmp_path, "chain.py", STIFF_CHAIN_SCENE)
     out = ["--out", str(tmp_path / "out"), "--no-progress"]
     assert cli.main(["run", scene, *out]) == cli.EXIT_FAILED_SOLVE
-    assert "krylov=True" in capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err
+    assert "--krylov" in err and "krylov=True" not in err  # 300 unknowns: the advice applies, in the tool's terms
+    assert "--krylov" in captured.out  # the summary's status line too
     assert cli.main(["run", scene, "--krylov", *out]) == 0
 
 
@@ -174,10 +213,7 @@ def test_krylov_solves_a_stiff_chain_that_fails_without_it(tmp_path, capsys):
         (["run", "saturn"], "unknown scene 'saturn'. The built-in scenes are oscillator, quartic, kepler"),
         (["run", "{noh}"], "it does not define H."),
         (["run", "{raises}"], "raised ZeroDivisionError: division by zero"),
-        (["run", "--method", "cg2:simpson"], "unknown rule 'simpson'"),
         (["run", "kepler", "--method", "lvi"], "LagrangianVI integrates L(q, qdot)"),
-        (["run", "kepler", "--steps", "10", "--save-every", "3"], "--steps (10) must be a multiple of --save-every"),
-        (["sweep", "kepler", "--methods", "mm:gauss2"], "ModifiedMidpoint takes no degree and no quadrature rule"),
     ],
 )
 def test_bad_input_is_a_message_with_exit_1(tmp_path, capsys, argv, message):
@@ -186,6 +222,64 @@ def test_bad_input_is_a_message_with_exit_1(tmp_path, capsys, argv, message):
     assert cli.main([a.format(**files) for a in argv]) == 1
     captured = capsys.readouterr()
     assert captured.err.startswith("galerkin-jax: error: ") and message in captured.err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["run", "--method", "cg3:gaus3"], "--method: unknown rule 'gaus' (did you mean 'gauss'?)"),
+        (["run", "--method", "cg2:simpson"], "--method: unknown rule 'simpson'"),
+        (["run", "--method", "cgg2"], "--method: unknown method 'cgg' (did you mean 'cg'?)"),
+        (["run", "--method", "dg", "--rule", "lobatto", "--points", "1"], "Gauss-Lobatto rule has at least 2 point(s)"),
+        (["run", "kepler", "--steps", "10", "--save-every", "3"], "--steps (10) must be a multiple of --save-every"),
+        (["run", "kepler", "--plot", "q0,q2"], "--plot: q2 does not exist; the scene has q0 .. q1 and p0 .. p1."),
+        (["sweep", "kepler", "--methods", "mm:gauss2"], "--methods: ModifiedMidpoint takes no degree and no quadrature"),
+        (["sweep", "kepler", "--methods", "cg2,cg3:gaus3"], "--methods: unknown rule 'gaus'"),
+    ],
+)
+def test_a_bad_option_is_one_line_with_exit_2_and_writes_nothing(tmp_path, capsys, argv, message):
+    """The README's promise: 2 for a bad option, a method spec included."""
+    assert cli.main(argv + ["--out", str(tmp_path / "out")]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith("galerkin-jax: error: ") and message in captured.err
+    assert captured.err.count("\n") == 1 and captured.out == ""
+    assert not (tmp_path / "out").exists()
+
+
+SCENE_HEAD = "import jax.numpy as jnp\nH = lambda q, p: 0.5 * p @ p - 1 / jnp.sqrt(q @ q)\nn_steps = 20\n"
+
+
+@pytest.mark.parametrize(
+    "values, message",
+    [
+        ("q0, p0 = [1.0, float('nan')], [0.0, 1.0]", "q0 must be finite, got [ 1. nan]."),
+        ("q0, p0 = [1.0, 0.0], [0.0, float('inf')]", "p0 must be finite"),
+        ("q0, p0, h = [1.0, 0.0], [0.0, 1.0], -0.1", "h must be finite and > 0, got -0.1."),
+        ("q0, p0, h = [1.0, 0.0], [0.0, 1.0], float('nan')", "h must be finite and > 0, got nan."),
+        ("q0, p0, h = [1.0, 0.0], [0.0, 1.0], 'small'", "h must be a number, got 'small'."),
+        ("q0, p0, n_steps = [1.0, 0.0], [0.0, 1.0], 0", "n_steps must be an integer >= 1, got 0."),
+        ("q0, p0, n_steps = [1.0, 0.0], [0.0, 1.0], 10.5", "n_steps must be an integer >= 1, got 10.5."),
+        ("q0, p0 = [1.0, 0.0], [0.0, 1.0, 0.0]", "q0 and p0 must have the same shape, got (2,) and (3,)."),
+        ("q0, p0, center = [1.0, 0.0], [0.0, 1.0], [0.0, 0.0, 0.0]", "center must be a point of shape (2,)"),
+    ],
+)
+@pytest.mark.parametrize("command", ["run", "sweep"])
+def test_bad_scene_values_are_one_line_with_exit_1_before_anything_is_written(tmp_path, capsys, values, message,
+                                                                               command):
+    scene = write(tmp_path, "bad.py", SCENE_HEAD + values + "\n")
+    assert cli.main([command, scene, "--out", str(tmp_path / "out"), "--no-progress"]) == 1
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"galerkin-jax: error: scene file {scene!r}: ") and message in captured.err
+    assert captured.err.count("\n") == 1 and "Traceback" not in captured.err
+    assert captured.out == "" and not (tmp_path / "out").exists()  # no NPZ, no plot, no folder
+
+
+def test_a_bad_scene_value_gives_no_traceback_from_the_script(tmp_path):
+    write(tmp_path, "bad.py", SCENE_HEAD + "q0, p0, h = [1.0, 0.0], [0.0, 1.0], float('nan')\n")
+    done = galerkin_jax("galerkin_jax", "run", "bad.py", "--out", "out", cwd=tmp_path)
+    assert done.returncode == 1
+    assert done.stderr == "galerkin-jax: error: scene file 'bad.py': h must be finite and > 0, got nan.\n"
+    assert done.stdout == "" and not (tmp_path / "out").exists()
 
 
 def test_sweep_table_in_one_batch_and_cg1_conserves_quadratic_H(tmp_path, capsys):
@@ -197,7 +291,7 @@ def test_sweep_table_in_one_batch_and_cg1_conserves_quadratic_H(tmp_path, capsys
     with open(os.path.join(out, "oscillator_sweep.csv")) as f:
         header, *rows = [line.strip().split(",") for line in f]
     assert header == ["method", "h", "status", "energy error", "L error", "final error", "error estimate",
-                      "Newton per element", "max Newton"]
+                      "Newton per step", "max Newton"]
     energy, final = (np.array([float(r[header.index(c)]) for r in rows]) for c in ("energy error", "final error"))
     assert [r[0] for r in rows] == ["cG(1) Gauss-Legendre 2"] * 2 + ["cG(1) trapezoid"] * 2
     assert np.all(energy < 1e-14)  # [GBS, Thm. 3.1], quadratic H: measured <= 4.4e-16
@@ -215,3 +309,105 @@ def test_method_specs_and_sweep_groups():
     groups = sweeps.groups(specs.parse_specs("cg2:gauss2,mm,cg2:lobatto3,dg1,cg1:midpoint"))
     assert [[specs.tag(s) for s in g] for g in groups] == [["cG2-gauss2", "cG2-lobatto3"], ["ModifiedMidpoint"],
                                                            ["dG1-gauss2"], ["cG1-midpoint"]]
+
+
+def test_sweep_exits_3_when_a_configuration_fails_and_still_writes_its_table(tmp_path, capsys):
+    scene = write(tmp_path, "blowup.py", NO_SOLUTION_SCENE)
+    out = str(tmp_path / "out")
+    argv = ["sweep", scene, "--methods", "cg1:gauss1", "--step-sizes", "1,0.001", "--steps", "4", "--out", out]
+    assert cli.main(argv) == cli.EXIT_FAILED_SOLVE
+    captured = capsys.readouterr()
+    with open(os.path.join(out, "blowup_sweep.csv")) as f:
+        header, *rows = [line.strip().split(",") for line in f]
+    failed, passed = (int(row[header.index("status")]) for row in rows)
+    assert failed != 0 and passed == 0  # h = 1 has no root; h = 0.001 does
+    name = gj.Status(failed).name
+    assert captured.err.startswith("galerkin-jax: error: 1 of 2 configurations failed, their diagnostics shown as '-': "
+                                   f"status {failed} ({name}) in 1 (cG(1) Gauss-Legendre 1 at h = 1): ")
+    assert gj.status_message(failed).split(";")[0] in captured.err
+    assert captured.err.count("\n") == 1 and "rylov" not in captured.err  # 2 unknowns per element
+
+
+def oscillator_dg1_energy_change(n):
+    """1 - rho^(2n) of dG(1) with exact quadrature on the oscillator at h = 1 [GBS, eq. (65)]."""
+    Om2 = 0.125  # Omega = h omega, omega^2 = 1/8
+    return 1 - ((4 * Om2 + 36) / (Om2**2 + 4 * Om2 + 36)) ** n
+
+
+def test_the_closing_line_follows_the_numbers_a_large_drifting_energy_error(tmp_path, capsys):
+    """dG(1) on the oscillator at h = 1: H_n = rho^(2n) H_0, 15.7 % lost in 400 steps."""
+    argv = ["run", "oscillator", "--method", "dg1:gauss2", "--step-size", "1", "--steps", "400", "--no-progress"]
+    assert cli.main(argv + ["--out", str(tmp_path / "out")]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    percent = float(last.split("up to ")[1].split(" %")[0])
+    assert percent == pytest.approx(100 * oscillator_dg1_energy_change(400), abs=0.05)  # printed to 3 digits
+    first, final = (float(x) for x in last.split("grows from ")[1].split(" in the last")[0].split(
+        " in the first quarter of the run to "))
+    assert first == pytest.approx(oscillator_dg1_energy_change(100), rel=0.02)  # two digits printed
+    assert final == pytest.approx(oscillator_dg1_energy_change(400), rel=0.02)
+    assert "it drifts. The steps are too large for this scene: try a smaller --step-size than 1." in last
+    assert "no drift" not in last and "oscillates" not in last and "expected" not in last
+
+
+def test_energy_verdict_reads_round_off_drift_and_bounded_from_the_numbers():
+    eps = np.finfo(np.float64).eps
+    t = np.linspace(0.0, 1.0, 101)
+    assert summary.energy_verdict(1e-14 * t, eps)[0] == "round-off"  # 45 eps < 1000 eps
+    assert summary.energy_verdict(1e-6 * t, eps)[0] == "drift"  # linear growth: last / first quarter = 4
+    assert summary.energy_verdict(1e-6 * np.sqrt(t), eps)[0] == "bounded"  # sqrt: a ratio of 2, not above it
+    oscillating = 1e-6 * np.sin(10 * np.pi * t) ** 2  # peaks on the grid, at t = 0.05 + 0.1 j
+    verdict, words = summary.energy_verdict(oscillating, eps)
+    assert verdict == "bounded" and words.startswith("is 1.0e-06 at most in the first quarter")
+    assert summary.energy_verdict(1e-6 * t[:8], eps)[0] == "short"
+    line = summary.closing_line("e.png", specs.complete(specs.parse_spec("cg2:gauss2")), 1.39 * t, eps, True, 0.5)
+    assert "large, up to 139 % of |H(0)|" in line and "does not drift" not in line and "symplectic" not in line
+    line = summary.closing_line("e.png", specs.complete(specs.parse_spec("cg2:gauss2")), 1e-6 * t, eps, True, 0.5)
+    assert "it drifts. Not what the method usually does: " in line  # Gauss collocation should not drift
+
+
+def test_steps_too_large_is_judged_against_the_initial_state_not_a_blown_up_run():
+    problem = specs.load_scene("kepler")  # initial state of size 2 (|p_2| = 2 at perihelion, e = 0.6)
+    blown_up = np.full((3, 2), 1e6)
+    solution = SimpleNamespace(t=np.array([0.0, 1.0, 2.0]), q=blown_up, p=blown_up, error_estimate=0.5)
+    local = dict(summary.accuracy_lines(problem, solution, 2))["local"]
+    assert "2.5e-01 of the initial state's largest |q_i|, |p_i|; the steps are too large to mean much" in local
+    solution.error_estimate = 0.1  # 0.05 of the initial state: below the 0.1 that makes a step meaningless
+    assert "too large" not in dict(summary.accuracy_lines(problem, solution, 2))["local"]
+
+
+def test_failure_words_keep_the_krylov_advice_only_above_the_dense_limit():
+    status = int(gj.Status.NEWTON_MAX_ITERATIONS)
+    small, large = summary.failure_words(status, 12, False), summary.failure_words(status, 300, False)
+    assert "rylov" not in small and "--krylov" in large and small in gj.status_message(status)
+    assert "rylov" not in summary.failure_words(status, 300, True)  # --krylov given: nothing more to try there
+    assert summary.unknowns(gj.CG(3, gj.gauss_legendre(3)), np.zeros(50), np.zeros(50)) == 300  # k * 2d
+
+
+def test_bodies_of_shape_n_by_2_run_flat_and_draw_their_paths(tmp_path, capsys):
+    scene = write(tmp_path, "eight.py", THREE_BODY_SCENE)
+    out = tmp_path / "out"
+    assert cli.main(["run", scene, "--method", "cg2:gauss2", "--out", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "(3 bodies in 2-D, d = 6 degrees of freedom)" in printed
+    data = np.load(out / "eight_cG2-gauss2.npz")
+    assert data["q"].shape == (41, 6) and data["state_shape"].tolist() == [3, 2]
+    # body 1 starts where the scene put it: the flat state is the (3, 2) array row by row
+    np.testing.assert_array_equal(data["q"][0, :2], [0.97000436, -0.24308753])
+    # total momentum sum_n p_n, an invariant written for (3, 2) states: zero and kept to round-off
+    assert np.abs(data["invariant_P"]).max() < 1e-13
+    assert os.path.getsize(out / "eight_cG2-gauss2_bodies.png") > 1000
+    assert cli.main(["run", scene, "--method", "cg2:gauss2", "--out", str(out), "--plot", "q0,p_0",
+                     "--no-progress"]) == 0
+    assert os.path.getsize(out / "eight_cG2-gauss2_q0p0.png") > 1000
+
+
+def test_the_second_plot_fits_the_scene():
+    q = np.zeros((5, 4))
+    q[:, 2] = np.linspace(0, 3, 5)  # q_2 varies most
+    assert output.choose_view((4,), q) == ("phase", 2)
+    assert output.choose_view((2, 2), q) == ("bodies", (2, 2))
+    assert output.choose_view((3,), q[:, :3]) == ("bodies", (1, 3))
+    assert output.choose_view((4,), q, (("q", 0), ("p", 3))) == ("pair", (("q", 0), ("p", 3)))
+    assert output.parse_coordinate("q_12") == ("q", 12) and output.parse_coordinate("x1") is None
+    assert specs.load_scene("kepler").center == (0.0, 0.0)  # the Sun, marked in the orbit plot
+    assert specs.load_scene("oscillator").center is None

@@ -1,13 +1,25 @@
-"""Every notebook in notebooks/ runs, at the quick size, and prints the number it is about.
+"""Every notebook in notebooks/ runs, prints the numbers it is about, and its committed
+outputs are what the code prints now.
 
-The notebooks run in a fresh kernel with ``GALERKIN_JAX_QUICK=1`` (fewer steps, degrees and
-Adam iterations; see each notebook's first cell), from the notebooks folder. Each check
-reads one printed number of a notebook's last cells and compares it with what was measured
-at the quick size. The committed notebooks carry the outputs of the full size.
+The notebooks run in a fresh kernel from the notebooks folder. With ``GALERKIN_JAX_QUICK=1``
+(fewer steps, degrees and Adam iterations; see each notebook's first cell) each check reads
+one printed number of a notebook's last cells and compares it with what was measured at the
+quick size. The committed notebooks carry the outputs of the full size.
+
+Stale outputs: ``KEY_FIGURES`` lists, per notebook, the statuses and the figures its text
+teaches from. The quick run must print the committed value of every figure that does not
+depend on the size (``quick=True``). With ``GALERKIN_JAX_NOTEBOOKS=committed`` (a line of
+``.ci/run``) every notebook is executed at the committed size and every key figure compared
+with the committed output: a change of the code that changes what a notebook says fails CI
+until the notebook is re-executed (and its text read again).
 """
 
+import dataclasses
+import math
+import os
 import pathlib
 import re
+from typing import Optional
 
 import pytest
 
@@ -73,6 +85,115 @@ CHECKS = {
 }
 
 
+@dataclasses.dataclass(frozen=True)
+class Figure:
+    """A status or number a notebook prints and its text relies on.
+
+    Attributes:
+        pattern: a regular expression (multi-line) with one group: a word, an integer or a float
+            (``nan`` included).
+        rel: numbers: the relative tolerance between two runs (other machines, XLA versions).
+        below: a round-off figure: both values below it (its digits are noise); None: compare.
+        quick: the quick run prints the same value (the figure does not depend on the size).
+    """
+
+    pattern: str
+    rel: float = 0.0
+    below: Optional[float] = None
+    quick: bool = False
+
+
+FLOAT = r"([-+]?(?:\d+\.?\d*(?:e[-+]?\d+)?|nan))"
+KEY_FIGURES = {
+    "01_quickstart.ipynb": [
+        Figure(r"^status (\d+) \w+ - ", quick=True),
+        Figure(r"^h = 0\.3: status (\d+)", quick=True),
+        Figure(r"^h = 1\.0: status (\d+)", quick=True),  # the element with no root the text teaches from
+        Figure(rf"^h = 0\.3: .*error_estimate {FLOAT},", rel=0.05, quick=True),
+        Figure(rf"^h = 1\.0: .*error_estimate {FLOAT},", rel=0.05, quick=True),
+        Figure(rf"^h = 0\.3: .*max \|q - q_exact\| = {FLOAT}", rel=0.1),
+        Figure(rf"error_estimate falls like h\^{FLOAT}", rel=0.01, quick=True),
+        Figure(rf"estimate / true local error: {FLOAT}", rel=0.01),
+        Figure(rf"pilot: est\(0.1\) = {FLOAT}", rel=0.02, quick=True),
+        Figure(r"that run: status (\d+)", quick=True),
+        Figure(rf"max \|q - q_exact\|: nodes {FLOAT}", rel=0.05, quick=True),
+        Figure(rf"chord at mid-element {FLOAT}", rel=0.05, quick=True),
+        Figure(rf"angular momentum change with Gauss 3: {FLOAT}", below=1e-13, quick=True),
+        Figure(r"^status +(\d+) \(\w+\): "),  # the command line's summary
+        Figure(rf"^energy +max \|H\(t\) - H\(0\)\| / \|H\(0\)\| = {FLOAT}", rel=0.05),
+        Figure(rf"^global +error at t = 10 against the exact solution: {FLOAT}", rel=0.05),
+    ],
+    "02_gbs_galerkin_methods.ipynb": [
+        Figure(r"^(\d+) runs:", quick=True),
+        Figure(r"boxes that disagree with the paper: (\d+)", quick=True),
+        Figure(r"Table 5.1: (\d+) of \d+ filled boxes disagree", quick=True),
+        Figure(rf"from the printed form {FLOAT}", rel=0.01, quick=True),
+        Figure(rf"from the corrected form {FLOAT}", below=1e-13, quick=True),
+        Figure(rf"equal eq. \(69\) to {FLOAT}", below=1e-12, quick=True),
+        Figure(rf"1 - rho\^2 = {FLOAT} by eq\. \(65\)", rel=0.01, quick=True),
+    ],
+    "03_tang_variational_integrators.ipynb": [
+        Figure(rf"^s = 2: one step \|L - G\| slope {FLOAT}", rel=0.01, quick=True),
+        Figure(rf"^s = 3: one step \|L - G\| slope {FLOAT}", rel=0.01),
+        Figure(rf"orders of GalerkinVI\(s\):.*GalerkinVI\(2\) {FLOAT}", rel=0.01, quick=True),
+        Figure(rf"orders of GalerkinVI\(s\):.*GalerkinVI\(4\) {FLOAT}", rel=0.01),
+        Figure(rf"symplecticity defect:.*GalerkinVI\(2\), Gauss 3 {FLOAT}", below=1e-13),
+        Figure(rf"symplecticity defect:.*dG\(1\), Gauss 2 {FLOAT}", rel=0.05),
+        Figure(rf"variable mass, global slopes: s = 2: {FLOAT}", rel=0.01, quick=True),
+        Figure(rf"variable mass, global slopes:.*s = 3: {FLOAT}", rel=0.01),
+        Figure(rf"reproduces GalerkinVI's step to {FLOAT}", below=1e-13, quick=True),
+        Figure(rf"the printed one misses by {FLOAT}", rel=0.05, quick=True),
+    ],
+    "04_speed_and_accuracy.ipynb": [  # the benchmark's figures, read from its result file, and the live orders
+        Figure(rf"cheapest galerkin_jax run / cheapest peer run: {FLOAT}x", rel=0.01, quick=True),
+        Figure(rf"cheapest peer run: [\d.]+x \.\. {FLOAT}x", rel=0.01, quick=True),
+        Figure(rf"^kepler +1e-12 .* {FLOAT}$", rel=0.01, quick=True),
+        Figure(rf"^quartic +1e-6 .* {FLOAT}$", rel=0.01, quick=True),
+        Figure(rf"energy error of cG\(3\) {FLOAT}", rel=0.01, quick=True),
+        Figure(rf"cost per step of cG\(3\)\+Gauss 3: {FLOAT}x diffrax Tsit5", rel=0.01, quick=True),
+        Figure(rf"cost per step of cG\(3\)\+Gauss 3: .* {FLOAT}x a hand-written Gauss RK", rel=0.01, quick=True),
+        Figure(rf"cost per step of cG\(3\)\+Gauss 3: .* {FLOAT}x diffrax Dopri8", rel=0.01, quick=True),
+        Figure(rf"^cG\(2\), Gauss 2 +order {FLOAT}", rel=0.02),
+        Figure(rf"^cG\(4\), Gauss 4 +order {FLOAT}", rel=0.02),
+    ],
+    "05_tuning.ipynb": [
+        Figure(rf"Kepler: loss reduced by {FLOAT}x", rel=0.05),
+        Figure(rf"dG\(1\) rho: loss reduced by {FLOAT}x", rel=0.05),
+        Figure(rf"rho at Omega = 0.1, 100: \[{FLOAT} ", rel=0.01),
+        Figure(rf"rho at Omega = 0.1, 100: \[[\d.]+ {FLOAT}\]", rel=0.05),
+    ],
+}
+
+
+def figure_value(figure, text):
+    """The value of ``figure`` in a notebook's printed ``text`` (a float, or the word)."""
+    match = re.search(figure.pattern, text, flags=re.MULTILINE)
+    assert match, f"the notebook did not print {figure.pattern!r}"
+    value = next(g for g in match.groups() if g is not None)
+    try:
+        return float(value)
+    except ValueError:
+        return value
+
+
+def agree(figure, committed, fresh):
+    if isinstance(committed, str) or isinstance(fresh, str):
+        return committed == fresh
+    if math.isnan(committed) or math.isnan(fresh):
+        return math.isnan(committed) and math.isnan(fresh)
+    if figure.below is not None:
+        return committed < figure.below and fresh < figure.below
+    return abs(committed - fresh) <= figure.rel * max(abs(committed), abs(fresh))
+
+
+def stale_figures(name, committed_text, fresh_text, quick):
+    """The key figures of notebook ``name`` on which the committed outputs and a fresh run
+    disagree: lines ``pattern: committed -> fresh``."""
+    figures = [f for f in KEY_FIGURES[name] if f.quick or not quick]
+    pairs = [(f, figure_value(f, committed_text), figure_value(f, fresh_text)) for f in figures]
+    return [f"{f.pattern}: committed {a!r}, now {b!r}" for f, a, b in pairs if not agree(f, a, b)]
+
+
 def printed(notebook):
     """All text a notebook's code cells wrote to stdout, in order."""
     return "".join(o.get("text", "") for cell in notebook.cells if cell.cell_type == "code"
@@ -80,7 +201,25 @@ def printed(notebook):
 
 
 def test_every_notebook_has_a_check():
-    assert sorted(p.name for p in NOTEBOOKS.glob("*.ipynb")) == sorted(CHECKS)
+    assert sorted(p.name for p in NOTEBOOKS.glob("*.ipynb")) == sorted(CHECKS) == sorted(KEY_FIGURES)
+
+
+@pytest.mark.parametrize("name", sorted(KEY_FIGURES))
+def test_committed_outputs_print_every_key_figure(name):
+    text = printed(nbformat.read(NOTEBOOKS / name, as_version=4))
+    assert all(figure_value(f, text) is not None for f in KEY_FIGURES[name])
+
+
+def test_a_stale_status_or_number_is_caught():
+    """The committed output of 01 once showed h = 1.0 converging with an estimate of 4.7e3."""
+    committed = "h = 1.0: status 0 (SUCCESS), error_estimate 4.7e+03, max |q - q_exact| = 7.7e+03\n"
+    now = "h = 1.0: status 1 (NEWTON_MAX_ITERATIONS), error_estimate nan, max |q - q_exact| = nan\n"
+    status, estimate = KEY_FIGURES["01_quickstart.ipynb"][2:5:2]
+    assert figure_value(status, committed) == 0.0 and not agree(status, 0.0, figure_value(status, now))
+    assert not agree(estimate, figure_value(estimate, committed), figure_value(estimate, now))
+    assert agree(estimate, 1.3e-3, 1.33e-3) and not agree(estimate, 1.3e-3, 1.4e-3)  # rel = 0.05
+    round_off = Figure("x", below=1e-13)
+    assert agree(round_off, 4.4e-16, 6.7e-16) and not agree(round_off, 4.4e-16, 2e-13)
 
 
 @pytest.mark.parametrize("name", sorted(CHECKS))
@@ -103,5 +242,23 @@ def test_notebook_runs_at_quick_size(name, monkeypatch):
     notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
     client = nbclient.NotebookClient(notebook, timeout=300, kernel_name="python3",
                                      resources={"metadata": {"path": str(NOTEBOOKS)}})
+    committed = printed(nbformat.read(NOTEBOOKS / name, as_version=4))
     client.execute()  # raises CellExecutionError, with the cell and its traceback, on any error
     CHECKS[name](printed(notebook))
+    stale = stale_figures(name, committed, printed(notebook), quick=True)
+    assert not stale, f"{name}: the committed outputs are stale; re-execute the notebook:\n" + "\n".join(stale)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(os.environ.get("GALERKIN_JAX_NOTEBOOKS") != "committed",
+                    reason="executes every notebook at its committed size (minutes): set GALERKIN_JAX_NOTEBOOKS=committed")
+@pytest.mark.parametrize("name", sorted(KEY_FIGURES))
+def test_committed_outputs_are_what_the_code_prints(name, monkeypatch):
+    monkeypatch.delenv("GALERKIN_JAX_QUICK", raising=False)
+    notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
+    committed = printed(notebook)
+    client = nbclient.NotebookClient(notebook, timeout=900, kernel_name="python3",
+                                     resources={"metadata": {"path": str(NOTEBOOKS)}})
+    client.execute()
+    stale = stale_figures(name, committed, printed(notebook), quick=False)
+    assert not stale, f"{name}: the committed outputs are stale; re-execute the notebook:\n" + "\n".join(stale)

@@ -155,3 +155,50 @@ def test_work_precision_and_sweep_map():
     assert [t.get_text() for t in ax.get_yticklabels()] == ["cG(1)", "dG(1)"]
     with pytest.raises(ValueError, match="values"):
         plot.sweep_map(values, ["one row"], ["a", "b", "c"])
+
+
+def test_bodies_draws_each_body_from_states_of_shape_m_n_d_or_flat_with_the_layout():
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(7, 3, 2))  # 7 saved states of 3 bodies in the plane
+    ax = plot.bodies(q, center=(0.0, 0.0))
+    flat = plot.bodies(q.reshape(7, 6), shape=(3, 2))
+    for axes in (ax, flat, plot.bodies(q, shape=(3, 2))):
+        paths = axes.lines[0:6:2]  # a line and a start dot per body
+        for n, line in enumerate(paths):
+            np.testing.assert_array_equal(np.column_stack(line.get_data()), q[:, n])
+            np.testing.assert_array_equal(np.column_stack(axes.lines[2 * n + 1].get_data()), q[:1, n])
+        assert [t.get_text() for t in axes.get_legend().get_texts()][:3] == ["body 1", "body 2", "body 3"]
+    star = ax.lines[-1]
+    assert star.get_marker() == "*" and star.get_label() == "central body" and star.get_xydata().tolist() == [[0, 0]]
+    assert len(flat.lines) == 6  # no central body where none is given
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("$x$", "$y$")
+    with pytest.raises(ValueError, match="shape"):
+        plot.bodies(q.reshape(7, 6), shape=(4, 2))
+    with pytest.raises(ValueError, match="center"):
+        plot.bodies(q, center=(0.0, 0.0, 0.0))
+
+
+def test_bodies_in_3d_draw_the_plane_of_most_spread():
+    t = np.linspace(0, 2 * np.pi, 50)
+    q = np.zeros((50, 2, 3))
+    q[:, :, 0] = 0.01 * np.cos(t)[:, None]  # x barely moves: the paths lie in the y-z plane
+    q[:, 0, 1], q[:, 0, 2] = np.cos(t), np.sin(t)
+    q[:, 1, 1], q[:, 1, 2] = 2 * np.cos(t), -np.sin(t)
+    assert plot.plane(q) == (1, 2)
+    ax = plot.bodies(q)
+    np.testing.assert_array_equal(ax.lines[2].get_xdata(), q[:, 1, 1])
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("$y$", "$z$")
+    np.testing.assert_array_equal(plot.bodies(q, dims=(0, 2)).lines[0].get_xdata(), q[:, 0, 0])
+
+
+def test_bodies_and_coordinates_of_a_run(kepler_midpoint):
+    sol = jax.tree.map(lambda x: x[0], kepler_midpoint[1])
+    ax = plot.bodies(sol, shape=(1, 2), center=(0.0, 0.0))  # one body around the Sun
+    np.testing.assert_array_equal(np.column_stack(ax.lines[0].get_data()), np.asarray(sol.q))
+    assert ax.get_legend().get_texts()[0].get_text() == "central body"  # a single body is not labelled
+    ax = plot.coordinates(sol, ("q", 1), ("p", 0))
+    np.testing.assert_array_equal(ax.lines[0].get_xdata(), np.asarray(sol.q[:, 1]))
+    np.testing.assert_array_equal(ax.lines[0].get_ydata(), np.asarray(sol.p[:, 0]))
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("$q_{1}$", "$p_{0}$")
+    with pytest.raises(ValueError, match="index"):
+        plot.coordinates(sol, ("q", 2), ("p", 0))
