@@ -209,11 +209,15 @@ class Problem(scenes.Scene):
         args: passed to ``H(q, p, args)`` when not None.
         L: ``L(q, qdot)`` (or ``L(q, qdot, args)``) for LagrangianVI, else None.
         shape: the shape of the scene's ``q0``, e.g. ``(N, 3)``; ``(d,)`` for a flat state.
+        t1: the end time a file may set (``--t-end`` overrides it), else None.
+        tol: the tolerance a file may set for error-per-step control (``--tol``), else None.
     """
 
     args: Any = None
     L: Optional[Callable] = None
     shape: tuple = ()
+    t1: Optional[float] = None
+    tol: Optional[float] = None
 
     @property
     def d(self):
@@ -261,12 +265,14 @@ def _load_file(path):
         center = _array(center, "center", path)
         if center.shape != q0.shape[-1:]:
             raise CliError(f"scene file {path!r}: center must be a point of shape {q0.shape[-1:]}, got {center.shape}.")
+    t1, tol = (_optional_positive(namespace.get(name), name, path) for name in ("t1", "tol"))
     H, L, invariants = _flat_functions(q0.shape, namespace["H"], namespace.get("L"), invariants)
     stem = os.path.splitext(os.path.basename(path))[0]
     return Problem(
         name=stem, description=str(namespace.get("description", f"user scene {path}")), H=H, q0=q0.ravel(),
         p0=p0.ravel(), h=h, n_steps=n_steps, invariants=invariants, exact=_flat_exact(namespace.get("exact"), q0.shape),
         args=namespace.get("args"), L=L, shape=q0.shape, center=None if center is None else tuple(center),
+        t1=t1, tol=tol,
     )
 
 
@@ -293,6 +299,19 @@ def _step_size(value, path):
         raise CliError(f"scene file {path!r}: {error}" if "h must" in str(error)
                        else f"scene file {path!r}: h must be a number, got {value!r}.") from None
     return float(value)
+
+
+def _optional_positive(value, name, path):
+    """A scene's optional ``t1`` or ``tol``: None, or a finite number > 0."""
+    if value is None:
+        return None
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise CliError(f"scene file {path!r}: {name} must be a number, got {value!r}.") from None
+    if not np.isfinite(number) or number <= 0:
+        raise CliError(f"scene file {path!r}: {name} must be finite and > 0, got {number}.")
+    return number
 
 
 def _count(value, path):

@@ -169,3 +169,18 @@ def accuracy_lines(problem, solution, n_steps):
     lines.append(("local", f"estimated error of one step, the largest of the run: {estimate:.2e} (max-norm; "
                            f"{estimate / size:.1e} of the initial state's largest |q_i|, |p_i|{verdict})"))
     return lines
+
+
+def with_step_rule(text, solution, rule):
+    """The summary of a run to an end time, with a line on how its steps were chosen: the
+    accepted and rejected steps and the smallest and largest h."""
+    stats = solution.stats
+    line = (f"{'control':<9}{rule}: {int(stats['num_steps'])} steps, {int(stats['num_rejected_steps'])} rejected, "
+            f"h from {float(stats['min_step']):.3g} to {float(stats['max_step']):.3g}")
+    lines = text.split("\n")
+    at = next((i for i, l in enumerate(lines) if l.startswith("steps")), 0)
+    t = np.asarray(solution.t)
+    saved = f"{len(t)} states saved" + ("" if len(t) == int(stats["num_steps"]) + 1 else
+                                        " (between the steps, from the element polynomials)")
+    steps = f"{'steps':<9}{int(stats['num_steps'])} steps, t = {t[0]:g} .. {t[-1]:g}; {saved}"
+    return "\n".join(lines[:at] + [steps, line] + lines[at + 1:])

@@ -1,6 +1,7 @@
 """``galerkin-jax sweep``: the batched calls and the rows of its table."""
 
 import itertools
+import math
 
 import numpy as np
 
@@ -23,12 +24,13 @@ def groups(method_specs):
     return list(grouped.values())
 
 
-def sweep_call(problem, group, hs, states, scales, n_steps, dtype, progress=False, krylov=False):
+def sweep_call(problem, group, hs, states, scales, n_steps, dtype, progress=False, krylov=False, t1=None):
     """One ``gj.sweep`` over ``group`` x ``hs`` x ``states``: ``(fn, configs, reference)``,
     ``fn(configs, reference)`` the sweep (the values are its arguments, not constants in it).
 
-    The reference for the final error is the scene's exact solution at ``n_steps h`` for the
-    unscaled initial state (NaN for the others). With LagrangianVI the sweep integrates L,
+    The reference for the final error is the scene's exact solution at ``n_steps h`` (or at
+    ``t1``, which every configuration reaches when given) for the unscaled initial state (NaN
+    for the others). With LagrangianVI the sweep integrates L,
     so the energy is tracked as the invariant "H" and reported as the energy error.
     """
     fn, invariants = problem.H, dict(problem.invariants)
@@ -42,11 +44,12 @@ def sweep_call(problem, group, hs, states, scales, n_steps, dtype, progress=Fals
     reference = None
     if problem.exact is not None:
         nan = np.full(problem.q0.shape, np.nan)
-        exact = [problem.exact(n_steps * h) if scale == 1.0 else (nan, nan)
+        exact = [problem.exact(n_steps * h if t1 is None else t1) if scale == 1.0 else (nan, nan)
                  for _, h, scale in itertools.product(group, hs, scales)]
         reference = tuple(np.stack([np.asarray(x[i], dtype=float) for x in exact]).astype(dtype) for i in (0, 1))
-    call = lambda configs, reference: gj.sweep(fn, configs, n_steps=n_steps, invariants=invariants,
-                                               reference=reference, progress=progress, krylov=krylov)
+    length = dict(n_steps=n_steps) if t1 is None else dict(t1=t1, max_steps=math.ceil(t1 / min(hs)) + 1)
+    call = lambda configs, reference: gj.sweep(fn, configs, invariants=invariants, reference=reference,
+                                               progress=progress, krylov=krylov, **length)
     return call, configs, reference
 
 
@@ -67,7 +70,8 @@ def rows(group, hs, scales, result, n_steps):
         if final is not None:
             row["final error"] = float(final[i])
         row["error estimate"] = float(estimate[i])
-        row["Newton per step"] = round(int(result.num_newton_iterations[i]) / n_steps, 2)
+        steps = n_steps if result.num_steps is None else max(1, int(result.num_steps[i]))
+        row["Newton per step"] = round(int(result.num_newton_iterations[i]) / steps, 2)
         row["max Newton"] = int(result.max_newton_iterations[i])
         table.append(row)
     return table

@@ -33,7 +33,8 @@ class Solution:
             one element), ``batch_newton_iterations`` (the iterations the batch ran: under
             ``vmap`` each element waits for the batch's slowest member), ``num_steps``
             (accepted elements), ``num_rejected_steps``, ``min_step`` and ``max_step`` (the
-            smallest and largest accepted h; of a time-transformed run, in tau).
+            smallest and largest accepted h; of a time-transformed run, in tau; of fixed steps
+            h, where the last element to t1 may be shorter).
         error_estimate: the largest estimated local (one-element) error of the run, max-norm
             over (q, p), shape (); NaN for a failed run and for ``LagrangianVI``.
         dense: ``DenseOutput`` with ``integrate(..., dense=True)``, else None.
@@ -246,7 +247,7 @@ def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
         status=status,
         stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"],
                "batch_newton_iterations": final["trips"], "num_steps": final["steps"],
-               "num_rejected_steps": jnp.zeros_like(final["steps"])},
+               "num_rejected_steps": jnp.zeros_like(final["steps"]), "min_step": h, "max_step": h},
         error_estimate=final["estimate"],
         dense=dense,
     )

@@ -13,14 +13,14 @@ import numpy as np
 from ._controllers import Event, PIDController, TimeTransform
 
 
-def _concrete(*xs):
+def concrete(*xs):
     return all(not isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(xs))
 
 
 def _scalar(name, x):
     if jnp.ndim(x) != 0:
         raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(x)}.")
-    if _concrete(x) and not np.isfinite(float(x)):
+    if concrete(x) and not np.isfinite(float(x)):
         raise ValueError(f"{name} must be finite, got {float(x)}.")
 
 
@@ -36,7 +36,7 @@ def check_span(n_steps, t0, t1, controller):
             raise ValueError("A controller chooses the steps: give t1 (the end time), not n_steps.")
     if t1 is not None:
         _scalar("t1", t1)
-        if _concrete(t0, t1) and not float(t1) > float(t0):
+        if concrete(t0, t1) and not float(t1) > float(t0):
             raise ValueError(f"t1 must be greater than t0, got t0 = {float(t0)} and t1 = {float(t1)}.")
 
 
@@ -61,7 +61,7 @@ def check_controller(controller, method, batch=None):
         if jnp.shape(x) not in shapes:
             allowed = "a scalar" if batch is None else f"a scalar or of shape ({batch},)"
             raise ValueError(f"controller.{field.name} must be {allowed}, got shape {jnp.shape(x)}.")
-        if _concrete(x):
+        if concrete(x):
             values[field.name] = np.asarray(x, dtype=float)
     bounds = {
         "rtol": lambda v: v > 0, "atol": lambda v: v > 0, "safety": lambda v: (v > 0) & (v <= 1),
@@ -91,13 +91,13 @@ def check_save_at(save_at, t0, t1, dtype):
     ts = jnp.asarray(save_at, dtype)
     if ts.ndim != 1 or ts.shape[0] == 0:
         raise ValueError(f"save_at must be a non-empty 1-D array of times, got shape {ts.shape}.")
-    if _concrete(ts):
+    if concrete(ts):
         values = np.asarray(ts)
         if not np.all(np.isfinite(values)):
             raise ValueError("save_at must hold finite times.")
         if np.any(np.diff(values) < 0):
             raise ValueError("save_at must be sorted (non-decreasing).")
-        if _concrete(t0, t1) and (values[0] < float(t0) or values[-1] > float(t1)):
+        if concrete(t0, t1) and (values[0] < float(t0) or values[-1] > float(t1)):
             raise ValueError(
                 f"save_at must lie in [t0, t1] = [{float(t0)}, {float(t1)}], got [{values[0]}, {values[-1]}]."
             )

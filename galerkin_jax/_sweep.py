@@ -193,7 +193,8 @@ def sweep(
             its last element shortened; members of a smaller h take more elements).
         controller: None, ``PIDController`` or ``TimeTransform`` (as in ``integrate``); the
             fields of a ``PIDController`` may have shape (B,) to sweep tolerances.
-        max_steps: a controller's cap on attempts per configuration (default 4096). Static.
+        max_steps: a controller's cap on attempts per configuration (default 4096); with fixed
+            steps to t1 and traced step sizes, the elements reserved per member. Static.
         invariants: ``{name: I(q, p)}`` whose relative change is tracked (e.g. angular momentum).
         reference: ``(q_ref, p_ref)`` of shape ``(B, d)`` for ``final_error``.
         save_every: store a trajectory with this stride (``SweepResult.solution``); default
@@ -214,12 +215,19 @@ def sweep(
     _span.check_span(n_steps, t0, t1, controller)
     if t1 is not None and save_every is not None:
         raise ValueError("save_every needs n_steps: a sweep to t1 saves no trajectory.")
-    hs = np.asarray(getattr(configs, "h", 1.0), dtype=float)
     counts = None
     if t1 is not None and controller is None:
-        if not np.all(np.isfinite(hs) & (hs > 0)):
-            raise ValueError("configs.h must be finite and > 0.")
-        counts = max(_span.fixed_step_count(t0, t1, h)[0] for h in np.atleast_1d(hs))
+        hs = getattr(configs, "h", None)
+        if _span.concrete(hs, t0, t1):
+            hs = np.atleast_1d(np.asarray(hs, dtype=float))
+            if not np.all(np.isfinite(hs) & (hs > 0)):
+                raise ValueError("configs.h must be finite and > 0.")
+            counts = max(_span.fixed_step_count(t0, t1, h)[0] for h in hs)
+        elif max_steps is None:
+            raise ValueError("A sweep to t1 with traced step sizes needs max_steps: the elements reserved per member.")
+        else:
+            _span.check_max_steps(max_steps)
+            counts = max_steps
     configs = _checks.check_sweep(H, configs, n_steps or counts or 1, save_every, invariants, reference)
     _span.check_controller(controller, configs.method, configs.size)
     invariants = dict(invariants or {})

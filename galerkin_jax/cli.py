@@ -9,6 +9,7 @@ configuration of ``sweep`` (``gj.status_message`` says why). An error is one lin
 """
 
 import argparse
+import dataclasses
 import functools
 import os
 import sys
@@ -55,6 +56,10 @@ examples:
 
 
 CACHE_VARIABLE = "GALERKIN_JAX_CACHE"
+
+
+ADAPTIVE_MAX_STEPS = 100_000  # steps of --tol / --time-transform: a run that needs more says so (status 4)
+SAVED_STATES = 2001  # states a run to --t-end saves, evenly in time, from the element polynomials
 
 
 def compile_cache_folder(environ=os.environ):
@@ -162,6 +167,15 @@ def build_parser():
     run.add_argument("--points", "-n", type=int, metavar="N",
                      help="points of the rule (default: k Gauss points for cG and the VIs, otherwise k + 1)")
     run.add_argument("--step-size", type=_positive(float), metavar="H", help="step size h (default: the scene's)")
+    run.add_argument("--t-end", type=_positive(float), metavar="T",
+                     help="integrate to t = T (the last step shortened to land on it) instead of --steps")
+    run.add_argument("--tol", type=_positive(float), metavar="TOL",
+                     help="choose the steps by error-per-step control, rtol = atol = TOL (needs an end time)")
+    run.add_argument("--time-transform", action="store_true",
+                     help="variable steps that keep the method's structure (the Poincare transformation; "
+                          "--step-size is then the first step)")
+    run.add_argument("--max-steps", type=_positive(int), metavar="N", default=ADAPTIVE_MAX_STEPS,
+                     help=f"cap on the steps of --tol or --time-transform (default {ADAPTIVE_MAX_STEPS})")
     run.add_argument("--save-every", type=_positive(int), metavar="N", default=1,
                      help="save every N-th state (default 1)")
     run.add_argument("--out", **out)
@@ -181,6 +195,8 @@ def build_parser():
                        help="comma-separated step sizes (default: the scene's h times 2, 1, 1/2, 1/4)")
     sweep.add_argument("--q0-scale", type=_floats, metavar="S,S,...", default=[1.0],
                        help="initial states (s q0, p0), comma-separated s (default 1)")
+    sweep.add_argument("--t-end", type=_positive(float), metavar="T",
+                       help="every configuration integrates to t = T instead of --steps")
     sweep.add_argument("--out", **out)
     sweep.set_defaults(command=sweep_command)
 
@@ -251,27 +267,70 @@ def run_command(options):
     problem = specs.load_scene(options.scene or DEFAULT_SCENE)
     if spec.kind == "lvi" and problem.L is None:
         raise CliError("LagrangianVI integrates L(q, qdot): give a scene file that defines L.")
-    h, n_steps = options.step_size or problem.h, options.steps or problem.n_steps
-    if n_steps % options.save_every:
+    h = options.step_size or problem.h
+    span = _span(options, problem, h)
+    n_steps = options.steps or problem.n_steps
+    if span is None and n_steps % options.save_every:
         raise CliError(f"--steps ({n_steps}) must be a multiple of --save-every ({options.save_every}).",
                        EXIT_BAD_OPTION)
     _check_plot(options.plot, problem.d)
     method = specs.build(spec)
     q0, p0 = problem.q0.astype(_dtype()), problem.p0.astype(_dtype())
+    if span is None:
+        timing = dict(n_steps=n_steps, save_every=options.save_every, dense=_dense(spec, n_steps, problem.d))
+    elif _dense(spec, options.max_steps, problem.d):  # the steps themselves: states at the nodes
+        timing = dict(t1=span["t1"], controller=span["controller"], max_steps=options.max_steps, dense=True)
+    else:  # too many steps to keep: states between the nodes, from the element polynomials
+        timing = dict(t1=span["t1"], controller=span["controller"], max_steps=options.max_steps,
+                      save_at=np.linspace(0.0, span["t1"], SAVED_STATES).astype(_dtype()))
     integrate = functools.partial(
-        gj.integrate, problem.L if spec.kind == "lvi" else problem.H, q0, p0, method=method, n_steps=n_steps,
-        args=problem.args, save_every=options.save_every, dense=_dense(spec, n_steps, problem.d),
-        progress=options.progress, krylov=options.krylov)
+        gj.integrate, problem.L if spec.kind == "lvi" else problem.H, q0, p0, method=method, args=problem.args,
+        progress=options.progress, krylov=options.krylov, **timing)
     solution, compile_s, run_s = timed(lambda h: integrate(h=h), np.asarray(h, _dtype()))
+    if span is not None:
+        n_steps = int(solution.stats["num_steps"])
+        solution = _nodes(solution, n_steps)
     energy, invariants = _observe(problem, solution)
     files = _write_run(problem, spec, solution, energy, invariants, h, n_steps, options)
     n_unknowns = summary.unknowns(method, q0, p0)
-    print(summary.run_summary(problem, spec, solution, energy, invariants, h, n_steps, (compile_s, run_s), files,
-                              n_unknowns, options.krylov))
+    text = summary.run_summary(problem, spec, solution, energy, invariants, h, n_steps, (compile_s, run_s), files,
+                               n_unknowns, options.krylov)
+    print(text if span is None else summary.with_step_rule(text, solution, span["rule"]))
     status = int(solution.status)
     if status:
         raise CliError(summary.failure_message(status, n_unknowns, options.krylov, h), code=EXIT_FAILED_SOLVE)
     return 0
+
+
+def _nodes(solution, n_steps):
+    """A run with dense output as the states at its steps' ends (the nodes), where its
+    element polynomials are less accurate than the nodes (superconvergence)."""
+    dense = solution.dense
+    if dense is None:
+        return solution
+    q, p = dense.view(dense.z[: n_steps + 1])
+    return dataclasses.replace(solution, t=dense.t[: n_steps + 1], q=q, p=p)
+
+
+def _span(options, problem, h):
+    """``None`` for a run of ``--steps``, else its end time, controller and how to say it:
+    ``--t-end`` (or the scene's ``t1``) with fixed steps, ``--tol`` (or the scene's ``tol``) or
+    ``--time-transform`` for variable ones."""
+    t1 = options.t_end or problem.t1
+    tol = options.tol or (None if options.time_transform else problem.tol)
+    if options.tol and options.time_transform:
+        raise CliError("--tol and --time-transform choose the steps in two different ways: give one.", EXIT_BAD_OPTION)
+    if options.steps and options.t_end:
+        raise CliError("--steps and --t-end both set the run's length: give one.", EXIT_BAD_OPTION)
+    if t1 is None and options.steps is None and (tol or options.time_transform):
+        t1 = h * problem.n_steps
+    if t1 is None or (options.steps and not (tol or options.time_transform)):
+        return None
+    if tol:
+        return dict(t1=t1, controller=gj.PIDController(rtol=tol, atol=tol), rule=f"error per step, tol = {tol:g}")
+    if options.time_transform:
+        return dict(t1=t1, controller=gj.TimeTransform(), rule="time transformation (default s), h in tau")
+    return dict(t1=t1, controller=None, rule="fixed steps, the last shortened to land on t1")
 
 
 def _dense(spec, n_steps, d):
@@ -320,13 +379,15 @@ def sweep_command(options):
         raise CliError(f"--methods: {error}", error.code) from None
     problem = specs.load_scene(options.scene or DEFAULT_SCENE)
     hs = options.step_sizes or [problem.h * f for f in (2.0, 1.0, 0.5, 0.25)]
+    if options.steps and options.t_end:
+        raise CliError("--steps and --t-end both set the runs' length: give one.", EXIT_BAD_OPTION)
     n_steps = options.steps or problem.n_steps
     states = [((s * problem.q0).astype(_dtype()), problem.p0.astype(_dtype())) for s in options.q0_scale]
     rows, times, n_unknowns = [], np.zeros(2), {}
     groups = sweeps.groups(method_specs)
     for group in groups:
         result, *seconds = timed(*sweeps.sweep_call(problem, group, hs, states, options.q0_scale, n_steps, _dtype(),
-                                                    options.progress, options.krylov))
+                                                    options.progress, options.krylov, options.t_end))
         times += seconds
         rows += sweeps.rows(group, hs, options.q0_scale, result, n_steps)
         n_unknowns.update({spec: summary.unknowns(specs.build(spec), *states[0]) for spec in group})

@@ -411,3 +411,52 @@ def test_the_second_plot_fits_the_scene():
     assert output.parse_coordinate("q_12") == ("q", 12) and output.parse_coordinate("x1") is None
     assert specs.load_scene("kepler").center == (0.0, 0.0)  # the Sun, marked in the orbit plot
     assert specs.load_scene("oscillator").center is None
+
+
+def test_run_to_an_end_time_with_a_tolerance_prints_its_steps(tmp_path, capsys):
+    """--t-end with --tol: error-per-step control lands on T and the summary tells the steps,
+    the rejections and the range of h; the trajectory holds the steps' nodes."""
+    out = str(tmp_path / "out")
+    assert cli.main(["run", "kepler", "--t-end", "6.2832", "--tol", "1e-8", "--no-progress", "--out", out]) == 0
+    printed = capsys.readouterr().out
+    control = next(line for line in printed.splitlines() if line.startswith("control"))
+    assert "error per step, tol = 1e-08" in control and "rejected" in control
+    data = np.load(os.path.join(out, "kepler_cG3-gauss3.npz"))
+    steps = int(control.split(":")[1].split()[0])
+    assert len(data["t"]) == steps + 1 and abs(data["t"][-1] - 6.2832) < 1e-12
+    h = np.diff(data["t"])
+    assert h.max() / h.min() > 5  # e = 0.6: small steps at perihelion, large at aphelion
+
+
+def test_a_scene_file_may_set_t1_and_tol_and_the_time_transformation_lands_on_it(tmp_path, capsys):
+    scene = tmp_path / "s.py"
+    scene.write_text(USER_SCENE + "t1 = 1.5\ntol = 1e-9\n")
+    out = str(tmp_path / "out")
+    assert cli.main(["run", str(scene), "--time-transform", "--no-progress", "--out", out]) == 0
+    printed = capsys.readouterr().out
+    assert "time transformation" in printed
+    data = np.load(os.path.join(out, "s_cG3-gauss3.npz"))
+    assert abs(float(data["t"][-1]) - 1.5) < 1e-13
+    scene.write_text(USER_SCENE + "t1 = -1.0\n")
+    assert cli.main(["run", str(scene), "--out", out + "2"]) == 1
+    assert "t1 must be finite and > 0" in capsys.readouterr().err
+    assert not os.path.exists(out + "2")
+
+
+@pytest.mark.parametrize("argv", [["--tol", "1e-8", "--time-transform"], ["--steps", "10", "--t-end", "1"]])
+def test_conflicting_step_options_exit_2(tmp_path, capsys, argv):
+    out = str(tmp_path / "out")
+    assert cli.main(["run", "kepler", *argv, "--out", out]) == cli.EXIT_BAD_OPTION
+    assert capsys.readouterr().err.count("\n") == 1 and not os.path.exists(out)
+
+
+def test_sweep_to_an_end_time_reaches_it_with_every_step_size(tmp_path, capsys):
+    """--t-end on sweep: every h reaches T (its last step shortened), so the final errors
+    against the exact solution at T fall with h."""
+    out = str(tmp_path / "out")
+    assert cli.main(["sweep", "kepler", "--methods", "cg2:gauss2", "--step-sizes", "0.1,0.07,0.05",
+                     "--t-end", "3.0", "--no-progress", "--out", out]) == 0
+    rows = [line.split(",") for line in open(os.path.join(out, "kepler_sweep.csv")).read().splitlines()]
+    column = rows[0].index("final error")
+    finals = [float(row[column]) for row in rows[1:]]
+    assert finals[0] > finals[1] > finals[2]
