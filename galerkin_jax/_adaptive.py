@@ -72,7 +72,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     t0, t1 = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype)
     tiny = 16 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))
     counts = dict(steps=0, rejected=0, attempts=0, total=0, most=0, trips=0)
-    c = dict(z=z0, comp=jnp.zeros_like(z0), t=t0, h=jnp.asarray(h0, dtype), err1=jnp.ones((), dtype),
+    c = dict(z=z0, comp=jnp.zeros_like(z0), t=t0, z_prev=z0, Z_prev=guess, h=jnp.asarray(h0, dtype), err1=jnp.ones((), dtype),
              err2=jnp.ones((), dtype), landing=jnp.zeros((), jnp.int32),
              matrix=initial_matrix(guess, method.fixed_point),
              status=input_status(q0, p0, h0), h_min=jnp.full((), jnp.inf, dtype), h_max=jnp.zeros((), dtype),
@@ -100,13 +100,18 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         active = ~c["done"]
         z, t = c["z"], c["t"]
         q, p = jnp.split(z, 2)
+        # the previous element's polynomial continued (exact for a constant h, the time
+        # transformation's; the root finder falls back on the constant state where it is worse)
+        constant = method.initial_guess(q, p)
+        continued = method.initial_guess(q, p, (*jnp.split(c["z_prev"], 2), c["Z_prev"]))
+        predicted = jnp.where(c["steps"] > 0, continued, constant)
         if clock is None:
             last = t + c["h"] * (1 + 4 * jnp.finfo(dtype).eps) >= t1
             h = jnp.where(last, t1 - t, c["h"])
         else:
             h = c["h"]
         Z, matrix, iterations, status, trips = solve(
-            fn, (method, q, p, h, args), guess, guess, c["matrix"], state_scale(z), ~active, options)
+            fn, (method, q, p, h, args), predicted, constant, c["matrix"], state_scale(z), ~active, options)
         z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
         W = method.polynomial(H_bound, q, p, Z, h)
         solved = (status == Status.SUCCESS) & jnp.all(jnp.isfinite(z1))
@@ -142,7 +147,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         accept = accept & active
         fail = active & (status != Status.SUCCESS)
         new = dict(c, matrix=matrix, h=jnp.where(active, h_next, c["h"]), err1=err1, err2=err2, landing=landing)
-        end = dict(z=z1, comp=comp, t=t_b)
+        end = dict(z=z1, comp=comp, t=t_b, z_prev=z, Z_prev=Z)
         if event is not None:
             g_b = g(t_b, z1)
             hit = accept & _crossing(event, c["g_a"], g_b)
@@ -155,7 +160,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             new.update(ev_t=c["ev_t"].at[slot].set(t_ev, mode="drop"), ev_z=c["ev_z"].at[slot].set(at, mode="drop"),
                        ev_count=c["ev_count"] + hit, g_a=jnp.where(accept, g_b, c["g_a"]))
             if event.terminal:
-                end = jax.tree.map(lambda a, b: jnp.where(hit, a, b), dict(z=at, comp=jnp.zeros_like(comp), t=t_ev), end)
+                stop = dict(end, z=at, comp=jnp.zeros_like(comp), t=t_ev)
+                end = jax.tree.map(lambda a, b: jnp.where(hit, a, b), stop, end)
                 finished = finished | hit
         if ts is not None:  # a rejected step writes nothing: its end time is -inf
             t_end = jnp.where(accept, end["t"], -jnp.inf)
