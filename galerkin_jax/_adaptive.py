@@ -72,7 +72,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     t0, t1 = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype)
     tiny = 16 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))
     counts = dict(steps=0, rejected=0, attempts=0, total=0, most=0, trips=0)
-    c = dict(z=z0, comp=jnp.zeros_like(z0), t=t0, z_prev=z0, Z_prev=guess, h=jnp.asarray(h0, dtype), err1=jnp.ones((), dtype),
+    c = dict(z=z0, comp=jnp.zeros_like(z0), t=t0, z_prev=z0, Z_prev=guess, hs=jnp.zeros((max_steps,), dtype), h=jnp.asarray(h0, dtype), err1=jnp.ones((), dtype),
              err2=jnp.ones((), dtype), landing=jnp.zeros((), jnp.int32),
              matrix=initial_matrix(guess, method.fixed_point),
              status=input_status(q0, p0, h0), h_min=jnp.full((), jnp.inf, dtype), h_max=jnp.zeros((), dtype),
@@ -85,7 +85,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         c["acc"] = acc0
     if ts is not None:
         first = jnp.where(ts[:, None] == t0, z0[None, :], jnp.nan)
-        c["saved"], c["index"] = first, jnp.sum(ts <= t0).astype(jnp.int32)
+        nowhere = jnp.full(ts.shape, -1, jnp.int32)
+        c["saved"], c["index"] = (first, nowhere, jnp.zeros_like(ts)), jnp.sum(ts <= t0).astype(jnp.int32)
     if dense:
         c["node_t"] = jnp.full((max_steps + 1,), jnp.inf, dtype).at[0].set(t0)
         c["node_z"] = jnp.full((max_steps + 1,) + z0.shape, jnp.nan, dtype).at[0].set(z0)
@@ -166,7 +167,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         if ts is not None:  # a rejected step writes nothing: its end time is -inf
             t_end = jnp.where(accept, end["t"], -jnp.inf)
             new["saved"], new["index"] = _output.fill_saves(c["saved"], c["index"], ts, (z, W, t, t_end, h, clock),
-                                                            end["z"])
+                                                            end["z"], c["steps"])
+        new["hs"] = c["hs"].at[jnp.where(accept, c["steps"], max_steps)].set(h, mode="drop")
         if dense:  # written in place; a rejected step's index lies past the buffers
             n = jnp.where(accept, c["steps"], max_steps + 1)
             new["node_t"] = c["node_t"].at[n + 1].set(end["t"], mode="drop")

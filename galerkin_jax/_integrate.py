@@ -5,7 +5,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from . import _adaptive, _checks, _output, _span
+from . import _adaptive, _checks, _output, _replay, _span
 from ._controllers import Events
 from ._solve import Status
 from ._march import bind_args, input_status, march, nan_if_failed, solve_element, solver_options
@@ -272,17 +272,22 @@ def _integrate(H, q0, p0, method, h, args, t0, t1, h_last, n_steps, save_every, 
 
 @functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14))
 def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, event, max_steps, options, dense, estimate):
-    """A run whose steps are not known in advance (``_adaptive.run``)."""
-    fn, q0, p0, run_args, s, clock = _adaptive.problem(H, controller, q0, p0, t0, args)
+    """A run whose steps are not known in advance (``_adaptive.run``); its derivatives are those
+    of the run that takes the same steps (``_replay``)."""
+    inputs = (method, q0, p0, args)
+    fn, z_q0, z_p0, run_args, s, clock = _adaptive.problem(H, controller, *jax.lax.stop_gradient((q0, p0)), t0,
+                                                           jax.lax.stop_gradient(args))
     view = lambda z: _output.user_view(z, clock)
-    c = _adaptive.run(method, fn, q0, p0, t0, t1, h, run_args, controller, options=options, max_steps=max_steps,
-                      ts=ts, dense=dense, event=event, estimate=estimate, clock=clock, s=s)
+    c = _adaptive.run(jax.lax.stop_gradient(method), fn, z_q0, z_p0, t0, t1, h, run_args, controller, options=options,
+                      max_steps=max_steps, ts=ts, dense=dense, event=event, estimate=estimate, clock=clock, s=s)
     status = c["status"]
-    z_end = nan_if_failed(c["z"], status)
+    saved, places = (None, None) if ts is None else (c["saved"][0], c["saved"][1:])
+    z_end, saved = _replay.attach(H, controller, options, inputs, t0, c["hs"], places, c["z"], saved)
+    z_end = nan_if_failed(z_end, status)
     if ts is not None:
-        t, zs = ts, c["saved"]
+        t, zs = ts, saved
     else:
-        t, zs = jnp.stack([t0, c["t"]]), jnp.stack([jnp.concatenate([q0, p0]), z_end])
+        t, zs = jnp.stack([t0, c["t"]]), jnp.stack([jnp.concatenate([z_q0, z_p0]), z_end])
     q, p = view(zs)
     dense_output = None
     if dense:

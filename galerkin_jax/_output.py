@@ -60,32 +60,44 @@ def alpha_at_time(z0, W, t, t0, h, clock):
     return locate(f, zero, jnp.ones((), W.dtype), f(zero), iterations=24)
 
 
-def fill_saves(saved, index, ts, element, z_end):
+def fill_saves(saved, index, ts, element, z_end, n):
     """Write the states at the times ``ts[index:]`` that lie in the element ``(t_a, t_b]``.
 
     Args:
-        saved: ``(len(ts), 2d)`` buffer.
+        saved: ``(values, elements, alphas)``: the states ``(len(ts), 2d)``, and where each lies:
+            the element's index and alpha (1 at its end, where the node value is taken).
         index: the first time not yet written.
         ts: the sorted save times.
         element: ``(z0, W, t_a, t_b, h, clock)`` of the element.
         z_end: its end state (the node value, which a discontinuous w need not reach).
+        n: the element's index.
     Returns:
         ``(saved, index)``.
     """
     z0, W, t_a, t_b, h, clock = element
-    n = ts.shape[0]
+    size = ts.shape[0]
 
     def more(c):
-        return (c[1] < n) & (ts[jnp.minimum(c[1], n - 1)] <= t_b)
+        return (c[1] < size) & (ts[jnp.minimum(c[1], size - 1)] <= t_b)
 
     def write(c):
-        saved, i = c
+        (values, elements, alphas), i = c
         t = ts[i]
-        alpha = alpha_at_time(z0, W, t, t_a, h, clock)
+        alpha = jnp.where(t == t_b, 1.0, alpha_at_time(z0, W, t, t_a, h, clock))
         value = jnp.where(t == t_b, z_end, on_polynomial(z0, W, alpha[None])[0])
-        return saved.at[i].set(value), i + 1
+        return (values.at[i].set(value), elements.at[i].set(n), alphas.at[i].set(alpha)), i + 1
 
     return jax.lax.while_loop(more, write, (saved, index))
+
+
+def saved_states(ts_places, z0, starts, W, ends):
+    """The save states from a run's elements: ``starts``, ``W``, ``ends`` per element, and
+    ``ts_places = (elements, alphas)`` (``fill_saves``; element -1: the initial state)."""
+    elements, alphas = ts_places
+    n = jnp.maximum(elements, 0)
+    inside = jax.vmap(lambda n, a: on_polynomial(starts[n], W[n], a[None])[0])(n, alphas)
+    values = jnp.where((alphas == 1.0)[:, None], ends[n], inside)
+    return jnp.where((elements < 0)[:, None], z0[None, :], values)
 
 
 @pytree_dataclass
