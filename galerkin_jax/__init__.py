@@ -6,6 +6,8 @@ equivalence.
 """
 
 from ._galerkin import CG as CG, DG as DG
+from ._method import AbstractMethod as AbstractMethod
+from ._pytree import pytree_dataclass as pytree_dataclass
 from ._integrate import (
     Solution as Solution,
     amplification_matrix as amplification_matrix,
@@ -35,6 +37,7 @@ from ._quadrature import (
 )
 
 __all__ = [
+    "AbstractMethod",
     "CG",
     "Configs",
     "DG",
@@ -57,6 +60,7 @@ __all__ = [
     "midpoint",
     "pad_rule",
     "params_from_rule",
+    "pytree_dataclass",
     "rule_from_params",
     "stack_methods",
     "status_message",
