@@ -87,8 +87,10 @@ def test_a_user_method_steps_vmaps_and_differentiates():
     hs = jnp.array([0.01, 0.02])
     mine, builtin = (jax.vmap(jax.value_and_grad(energy), in_axes=(0, None))(hs, m) for m in (method, cg1))
     assert np.all(np.abs(np.asarray(mine[1])) > 1e-6)  # dE/dh of a symplectic one-step map: small, not zero
-    for a, b in zip(mine, builtin):
-        np.testing.assert_array_equal(a, b)  # measured: bitwise (the same residual, solver and tangent)
+    np.testing.assert_array_equal(mine[0], builtin[0])  # measured: bitwise (the same iterates)
+    # the tangents solve with Jacobians of two differently written residuals, which round
+    # differently: measured 4.9e-14 relative; 1e-12 is 20 times that
+    np.testing.assert_allclose(mine[1], builtin[1], rtol=1e-12)
 
 
 class Counting:
