@@ -104,13 +104,13 @@ class Counting:
         return self.H(q, p)
 
 
-class NoIncrement(ImplicitMidpoint):
-    """Its ``increment`` is not callable: it stands for a member left out of a duck-typed class."""
+@gj.pytree_dataclass
+class DuckTyped:
+    """Written to the protocol without its base class, and missing ``increment``."""
 
-    increment = None
-
-
-gj.pytree_dataclass(NoIncrement)
+    fixed_point = True
+    initial_guess, residual = ImplicitMidpoint.initial_guess, ImplicitMidpoint.residual
+    polynomial, local_error = ImplicitMidpoint.polynomial, gj.AbstractMethod.local_error
 
 
 class Unregistered(gj.AbstractMethod):
@@ -132,7 +132,7 @@ class TracedFixedPoint(ImplicitMidpoint):
 
 
 BAD = [
-    (NoIncrement(), r"method must be a galerkin_jax method .* gj.AbstractMethod; NoIncrement lacks increment\."),
+    (DuckTyped(), r"method must be a galerkin_jax method .* gj.AbstractMethod; DuckTyped lacks increment\."),
     (Unregistered(), r"Unregistered must be a pytree .* @gj.pytree_dataclass"),
     (PartitionWithoutPart(), r"has a partition_axis, so its residual must take part="),
     (TracedFixedPoint(), r"TracedFixedPoint.fixed_point must be a Python bool"),
