@@ -52,9 +52,9 @@ class AbstractMethod(abc.ABC):
             concatenation of a q half and a p half of equal shape; then ``residual(...,
             part="q")`` and ``part="p"`` must return the equations of each half alone (those
             whose ``h = 0`` Jacobian is the identity on that half). A method with a fixed
-            point on a state of more than 8 degrees of freedom is then solved through the
-            Gauss-Seidel sweep of the two halves, which contracts at the square of the
-            plain rate (``_march.element_residual``).
+            point on a state of more than ``_march.SWEEP_DIMENSION`` (8) degrees of freedom
+            is then solved through the Gauss-Seidel sweep of the two halves, which contracts
+            at the square of the plain rate (``_march.element_residual``).
     """
 
     fixed_point = False
@@ -137,7 +137,8 @@ def degree_and_rule(degree, least):
             raise TypeError(f"{name} needs a QuadratureRule, got {type(self.quadrature).__name__}.")
 
     fields = [(degree, int, dataclasses.field(metadata=dict(static=True))), ("quadrature", QuadratureRule)]
-    namespace = {"__post_init__": __post_init__, "__doc__": degree_and_rule.__doc__.splitlines()[0]}
+    doc = f"A method given by a polynomial degree {degree} >= {least} (static) and a quadrature rule."
+    namespace = {"__post_init__": __post_init__, "__doc__": doc, "__module__": __name__}
     return dataclasses.make_dataclass("DegreeAndRule", fields, bases=(AbstractMethod,), namespace=namespace,
                                       frozen=True)
 
