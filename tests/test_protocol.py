@@ -73,12 +73,16 @@ def test_implicit_midpoint_method_equals_cg1_midpoint_through_integrate(scene):
                                atol=100 * np.finfo(np.float64).eps * scale)  # measured: 0
 
 
-def test_a_user_method_steps_vmaps_and_differentiates():
-    """``step``, and ``vmap`` over h of ``grad`` through the run (implicit function theorem)."""
+def test_a_user_method_steps_sweeps_vmaps_and_differentiates():
+    """``step``, ``sweep``, and ``vmap`` over h of ``grad`` through the run (implicit function
+    theorem), against cG(1) with the midpoint rule."""
     H, q0, p0 = helpers.kepler(0.5)
     method, cg1 = ImplicitMidpoint(), gj.CG(1, gj.midpoint())
     np.testing.assert_array_equal(jnp.concatenate(gj.step(H, q0, p0, method=method, h=0.1)),
                                   jnp.concatenate(gj.step(H, q0, p0, method=cg1, h=0.1)))  # measured: bitwise
+    swept = [gj.sweep(H, gj.grid(method=m, h=[0.01, 0.02], state=(q0, p0)), n_steps=50) for m in (method, cg1)]
+    np.testing.assert_array_equal(swept[0].status, [0, 0])
+    np.testing.assert_array_equal(swept[0].q, swept[1].q)  # measured: bitwise
 
     def energy(h, m):
         sol = gj.integrate(H, q0, p0, method=m, h=h, n_steps=20, save_every=20)
