@@ -9,6 +9,8 @@ __version__ = "0.2.0"  # the version in pyproject.toml (the docs build checks th
 
 from ._controllers import Event as Event, PIDController as PIDController, TimeTransform as TimeTransform
 from ._galerkin import CG as CG, DG as DG
+from ._method import AbstractMethod as AbstractMethod
+from ._pytree import pytree_dataclass as pytree_dataclass
 from ._integrate import (
     Solution as Solution,
     amplification_matrix as amplification_matrix,
@@ -38,6 +40,7 @@ from ._quadrature import (
 )
 
 __all__ = [
+    "AbstractMethod",
     "CG",
     "Configs",
     "DG",
@@ -63,6 +66,7 @@ __all__ = [
     "midpoint",
     "pad_rule",
     "params_from_rule",
+    "pytree_dataclass",
     "rule_from_params",
     "stack_methods",
     "status_message",

@@ -14,9 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._quadrature import QuadratureRule
-
-_METHOD_MEMBERS = ("initial_guess", "residual", "increment", "polynomial", "local_error")
+from ._configs import Configs, state_dtype
+from ._method import MEMBERS, check_method  # noqa: F401 (check_method: every entry point checks here)
 
 
 def _concrete(x):
@@ -26,20 +25,6 @@ def _concrete(x):
 def check_function(H, name="H"):
     if not callable(H):
         raise TypeError(f"{name} must be a callable H(q, p) or H(q, p, args), got {type(H).__name__}.")
-
-
-def check_method(method):
-    if not all(callable(getattr(method, m, None)) for m in _METHOD_MEMBERS):
-        raise TypeError(
-            "method must be a galerkin_jax method such as gj.CG(1, gj.midpoint()), "
-            f"got {type(method).__name__}."
-        )
-    for rule in jax.tree_util.tree_leaves(method, is_leaf=lambda x: isinstance(x, QuadratureRule)):
-        if isinstance(rule, QuadratureRule) and (jnp.ndim(rule.points) != 1 or jnp.ndim(rule.weights) != 1):
-            raise ValueError(
-                "method.quadrature: points and weights must have shape (n_q,); to sweep "
-                "stacked rules, vmap over the method."
-            )
 
 
 class Float32Warning(UserWarning):
@@ -80,14 +65,6 @@ def warn_if_low_precision(dtype):
         stacklevel=_caller_stacklevel(),
     )
     _warned_low_precision = True  # after warn: with an "error" filter every call raises
-
-
-def state_dtype(*arrays):
-    """The real floating dtype the library computes in for these state arrays."""
-    dtype = jnp.result_type(*arrays, float)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"q0 and p0 must be real arrays, got dtype {dtype}.")
-    return dtype
 
 
 def check_state(q0, p0):
@@ -242,13 +219,6 @@ def check_premise(method, H, q0, p0):
         check_central_force(H, q0, p0)
 
 
-def describe_method(method):
-    """``CG(k=2)``: a method's class and static fields, which one batch must share."""
-    fields = dataclasses.fields(method) if dataclasses.is_dataclass(method) else ()
-    static = ", ".join(f"{f.name}={getattr(method, f.name)!r}" for f in fields if f.metadata.get("static"))
-    return f"{type(method).__name__}({static})"
-
-
 def check_sweep(H, configs, n_steps, save_every, invariants, reference):
     """Every input check of ``sweep``, before anything is traced; returns ``configs`` with
     q0, p0 and h in the state's float dtype (a ``Float32Warning`` below float64).
@@ -262,8 +232,6 @@ def check_sweep(H, configs, n_steps, save_every, invariants, reference):
     Returns:
         ``Configs``.
     """
-    from ._configs import Configs  # here: _configs imports this module
-
     check_function(H)
     if not isinstance(configs, Configs):
         raise TypeError(f"configs must be gj.Configs (see gj.grid), got {type(configs).__name__}.")
@@ -317,7 +285,7 @@ def _check_configs(configs):
 
 
 def _check_batched_method(method, B):
-    if not all(callable(getattr(method, m, None)) for m in _METHOD_MEMBERS):
+    if not all(callable(getattr(method, m, None)) for m in MEMBERS):
         raise TypeError(
             "configs.method must be a galerkin_jax method with stacked arrays (gj.stack_methods), "
             f"got {type(method).__name__}."

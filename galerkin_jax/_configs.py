@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checks
+from ._method import check_method, describe_method
 from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
 
@@ -32,6 +32,14 @@ class Configs:
     @property
     def size(self):
         return self.h.shape[0]
+
+
+def state_dtype(*arrays):
+    """The real floating dtype the library computes in for these state arrays."""
+    dtype = jnp.result_type(*arrays, float)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"q0 and p0 must be real arrays, got dtype {dtype}.")
+    return dtype
 
 
 def pad_rule(rule, n):
@@ -63,10 +71,10 @@ def _check_methods(methods, name):
         raise ValueError(f"{name}: no methods given; give at least one, e.g. [gj.CG(2, gj.gauss_legendre(3))].")
     for i, m in enumerate(methods):
         try:
-            _checks.check_method(m)
+            check_method(m)
         except (TypeError, ValueError) as error:
             raise type(error)(f"{name}[{i}]: {error}") from None
-    kinds = [_checks.describe_method(m) for m in methods]
+    kinds = [describe_method(m) for m in methods]
     for i, kind in enumerate(kinds):
         if kind != kinds[0]:
             raise ValueError(
@@ -220,7 +228,7 @@ def grid(*, method, h, state, args=None):
     methods, hs, states = _method_axis(method), _step_axis(h), _state_axis(state)
     args_axis = _args_axis(args)
     rows = list(itertools.product(range(len(methods)), range(len(hs)), range(len(states)), range(len(args_axis))))
-    dtype = _checks.state_dtype(*(x for s in states for x in s))
+    dtype = state_dtype(*(x for s in states for x in s))
     stacked_args = None
     if args is not None:
         stacked_args = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *[args_axis[r[3]] for r in rows])

@@ -9,26 +9,14 @@ of basis), while every polynomial matrix is an exact integer matrix (see ``_basi
 unknowns are increments, accurate relative to themselves.
 """
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _basis
-from ._defect import hamilton_field, local_error
+from ._defect import hamilton_field
+from ._method import degree_and_rule
 from ._pytree import pytree_dataclass
-from ._quadrature import QuadratureRule
-
-
-def check_degree(cls, k, least):
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < least:
-        raise ValueError(f"{cls} needs an integer degree k >= {least}, got {k!r}.")
-
-
-def check_rule(cls, quadrature):
-    if not isinstance(quadrature, QuadratureRule):
-        raise TypeError(f"{cls} needs a QuadratureRule, got {type(quadrature).__name__}.")
 
 
 def tested_field(H, quadrature, q0, p0, C, antiderivative, n_test, part=None):
@@ -56,7 +44,7 @@ def _columns(Z, d, part):
 
 
 @pytree_dataclass
-class CG:
+class CG(degree_and_rule("k", least=1)):
     """Continuous Galerkin cG(k) in time [GBS, eq. (16)].
 
     Trial functions are continuous, of degree k on each element (z_1 = z_0, eq. (13));
@@ -74,13 +62,6 @@ class CG:
 
     fixed_point = True  # R = C - h (...): dR/dC = I at h = 0, so Z <- Z - R(Z) contracts for small h
     partition_axis = -1  # C's q | p columns; residual(..., part=): the sweep of ``_march.element_residual``
-
-    k: int = dataclasses.field(metadata=dict(static=True))
-    quadrature: QuadratureRule
-
-    def __post_init__(self):
-        check_degree("CG", self.k, 1)
-        check_rule("CG", self.quadrature)
 
     def initial_guess(self, q0, p0, previous=None):
         """Zero (the constant state), or the previous element's derivative continued."""
@@ -102,12 +83,9 @@ class CG:
         """Legendre coefficients of z^h - z_0, shape ``(k + 1, 2d)``."""
         return _basis.combine(_basis.antiderivative_matrix(self.k), C)
 
-    def local_error(self, H, q0, p0, C, h):
-        return local_error(H, q0, p0, self.polynomial(H, q0, p0, C, h), C[0], h)
-
 
 @pytree_dataclass
-class DG:
+class DG(degree_and_rule("k", least=0)):
     """Discontinuous Galerkin dG(k) in time [GBS, eq. (19)].
 
     Trial and test functions have degree k; the jump term ``J dz_1 . (z^h(0) - z_0)`` imposes
@@ -122,13 +100,6 @@ class DG:
     """
 
     partition_axis = -1  # a's q | p columns; residual(..., part=): the sweep of ``_march.element_residual``
-
-    k: int = dataclasses.field(metadata=dict(static=True))
-    quadrature: QuadratureRule
-
-    def __post_init__(self):
-        check_degree("DG", self.k, 0)
-        check_rule("DG", self.quadrature)
 
     @property
     def fixed_point(self):
@@ -162,6 +133,3 @@ class DG:
     def polynomial(self, H, q0, p0, a, h):
         """Legendre coefficients of z^h - z_0: the unknowns themselves, shape ``(k + 1, 2d)``."""
         return a
-
-    def local_error(self, H, q0, p0, a, h):
-        return local_error(H, q0, p0, a, jnp.sum(a, axis=0), h)

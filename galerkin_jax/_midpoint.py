@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._defect import local_error
+from ._method import AbstractMethod
 from ._pytree import pytree_dataclass
 
 
@@ -17,7 +17,7 @@ def _split(Z):
     return dq, dp
 
 
-class _Increment:
+class _Increment(AbstractMethod):
     """The members shared by schemes whose unknown is the increment ``dz = z1 - z0``, shape
     ``(1, 2d)``; their polynomial is the straight line z0 + alpha dz."""
 
@@ -33,9 +33,6 @@ class _Increment:
 
     def polynomial(self, H, q0, p0, Z, h):
         return jnp.concatenate([0.5 * Z, 0.5 * Z])  # alpha = (P_0 + P_1) / 2
-
-    def local_error(self, H, q0, p0, Z, h):
-        return local_error(H, q0, p0, self.polynomial(H, q0, p0, Z, h), Z[0], h)
 
 
 @pytree_dataclass
@@ -91,8 +88,8 @@ class DiscreteGradient(_Increment):
         DbarH = DH(zbar) + [(H(z1) - H(z0) - DH(zbar) . dz) / |dz|^2] dz,   dz = z1 - z0,
 
     so DbarH . dz = H(z1) - H(z0) and, J being skew, H(z1) = H(z0) to round-off. Second
-    order and symmetric, but neither symplectic nor angular-momentum conserving (on the
-    quartic central-force scene of [GBS, Fig. 4.7] |L| changes by ~50 % over 10^4 steps).
+    order and symmetric, but neither symplectic nor angular-momentum conserving (|L| drifts
+    on the quartic central-force scene of [GBS, Fig. 4.7]).
     Prefer it to ``ModifiedMidpoint`` for Hamiltonians that are not |p|^2 / 2m + V(|q|);
     for central forces ``ModifiedMidpoint`` conserves both energy and L = q x p.
     Unknowns: the increment ``dz``, shape ``(1, 2d)``.
