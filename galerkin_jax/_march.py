@@ -135,28 +135,37 @@ def miss_correction(misses, miss, n):
     return latest, jnp.where(n >= 2, correction, jnp.where(n == 1, miss, 0.0))
 
 
+# elements whose embedded estimates are the run's largest, on which the full estimate is taken
+PEAKS = 4
+
+
 def peak_start(q0, p0, Z0, h):
-    """The carry of the element whose embedded estimate is the run's largest so far."""
-    return dict(size=jnp.full((), -jnp.inf, q0.dtype), q=q0, p=p0, Z=Z0, h=jnp.asarray(h, q0.dtype))
+    """The carry of the ``PEAKS`` elements whose embedded estimates are the run's largest so far."""
+    stack = lambda x: jnp.broadcast_to(x, (PEAKS,) + jnp.shape(x))
+    return dict(size=jnp.full((PEAKS,), -jnp.inf, q0.dtype), q=stack(q0), p=stack(p0), Z=stack(Z0),
+                h=stack(jnp.asarray(h, q0.dtype)))
 
 
 def peak_update(peak, method, H_bound, q, p, Z, h, ok):
-    """``peak`` with element (q, p, Z, h) in it where its embedded estimate (``embedded_error``,
-    one evaluation of Hamilton's field) is the largest so far and ``ok``."""
+    """``peak`` with element (q, p, Z, h) in place of its smallest where its embedded estimate
+    (``embedded_error``, one evaluation of Hamilton's field) is larger and ``ok``."""
     frozen = jax.lax.stop_gradient((q, p, Z, h))
     W = method.polynomial(H_bound, *frozen[:3], frozen[3])
     size = jnp.max(jnp.abs(embedded_error(H_bound, frozen[0], frozen[1], W, frozen[3])))
-    bigger = ok & (size > peak["size"])
-    return jax.tree.map(lambda a, b: jnp.where(bigger, b, a), peak, dict(size=size, q=frozen[0], p=frozen[1],
-                                                                        Z=frozen[2], h=frozen[3]))
+    slot = jnp.argmin(peak["size"])
+    bigger = ok & (size > peak["size"][slot])
+    new = dict(size=size, q=frozen[0], p=frozen[1], Z=frozen[2], h=frozen[3])
+    return jax.tree.map(lambda a, b: jnp.where(bigger, a.at[slot].set(b), a), peak, new)
 
 
 def peak_estimate(method, H_bound, peak):
-    """The full a posteriori estimate (``local_error``) of the peak element: the run's largest
-    local error, where the embedded estimate, of lower order, peaks on the element where the
-    full one does (one field evaluation per element instead of J + 1 and J products)."""
+    """The run's largest local error: the full a posteriori estimate (``local_error``) on the
+    elements where the embedded one, of lower order, peaks (the full one peaks among them: one
+    field evaluation per element instead of J + 1 and J Jacobian products)."""
     frozen = jax.lax.stop_gradient(peak)
-    return jax.lax.stop_gradient(method.local_error(H_bound, frozen["q"], frozen["p"], frozen["Z"], frozen["h"]))
+    local = jax.vmap(lambda q, p, Z, h: method.local_error(H_bound, q, p, Z, h))(
+        frozen["q"], frozen["p"], frozen["Z"], frozen["h"])
+    return jax.lax.stop_gradient(jnp.max(jnp.where(frozen["size"] > -jnp.inf, local, 0.0)))
 
 
 # the run's counters, carried as one int32 array (one fused kernel per element, not four);
