@@ -181,7 +181,7 @@ def integrate(
         progress: show a progress bar (tqdm if installed, else lines on stderr), ticked from
             inside the compiled loop (fixed steps). Static.
         error_estimate: ``Solution.error_estimate``, the largest local error (``_defect``):
-            True computes the full estimate on the element where the embedded one
+            True computes the full estimate on the four elements where the embedded one
             (``embedded_error``, one field evaluation per element) peaks; ``"full"`` on every
             element (the exact maximum, at J + 1 field evaluations and J Jacobian products per
             element); False leaves it NaN. Static.

@@ -188,7 +188,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         dense: also return, per element, its start state and polynomial coefficients.
         progress: drive a progress bar from inside the loop (``_progress``).
         estimate: the run's largest local error estimate: "full" computes it on every element;
-            True on the element where the embedded estimate peaks (``peak_estimate``);
+            True on the elements where the embedded estimate peaks (``peak_estimate``);
             False leaves it NaN.
     Returns:
         ``(final, saved, polynomials)``: ``final`` holds ``q, p, estimate, acc`` and the
