@@ -44,6 +44,99 @@ def _crossing(event, g_a, g_b):
     return {0: up | down, 1: up, -1: down}[event.direction]
 
 
+def _pid_rule(controller, H_bound, order, tiny):
+    """Error-per-step control: accept where the scaled embedded estimate is <= 1; h by the PID
+    factor; a rejected step below dtmin (or the round-off of t) ends the run (DTMIN)."""
+
+    def rule(c, step):
+        q, p = jnp.split(step["z"], 2)
+        e = embedded_error(H_bound, q, p, step["W"], step["h"])
+        err = jnp.where(step["solved"], scaled_error(e, step["z"], step["z1"], controller), jnp.inf)
+        accept = err <= 1
+        h_next = jnp.minimum(step["h"] * controller.next_factor(err, c["err1"], c["err2"], order, accept),
+                             controller.dtmax)
+        at_floor = ~accept & ((step["h"] <= controller.dtmin) | (h_next <= tiny))
+        memory = dict(err1=jnp.where(accept, err, c["err1"]), err2=jnp.where(accept, c["err1"], c["err2"]))
+        return dict(accept=accept, finished=accept & step["last"], t_b=jnp.where(step["last"], step["t1"],
+                    step["t"] + step["h"]), h_next=h_next, status=jnp.where(at_floor, Status.DTMIN, Status.SUCCESS),
+                    rejected=~accept & ~at_floor, memory=memory)
+
+    return rule, dict(err1=jnp.ones((), tiny.dtype), err2=jnp.ones((), tiny.dtype))
+
+
+def _transform_rule(s, clock, view, tiny):
+    """The time transformation: a constant step in tau; the element that passes t1 is shortened
+    by Newton on its end time t_b(h), dt_b/dh = s(z1) (alpha beyond 1 extrapolates w)."""
+
+    def rule(c, step):
+        z1, h, t1 = step["z1"], step["h"], step["t1"]
+        t_b = z1[clock]
+        s1 = s(*view(z1))
+        positive = (s1 > 0) & jnp.isfinite(s1)
+        status = jnp.where(step["solved"] & ~positive, Status.TIME_TRANSFORM, step["status"])
+        solved = step["solved"] & positive
+        near = jnp.abs(t_b - t1) <= tiny
+        landing = c["landing"]
+        shorten = solved & ~near & ((t_b > t1) | (landing > 0)) & (landing < _LANDING)
+        accept = solved & ~shorten
+        finished = accept & (near | (t_b > t1))
+        return dict(accept=accept, finished=finished, t_b=jnp.where(finished, t1, t_b),
+                    h_next=jnp.where(shorten, h * (1 + (t1 - t_b) / (h * s1)), h), status=status,
+                    rejected=jnp.zeros((), bool), memory=dict(landing=landing + shorten))
+
+    return rule, dict(landing=jnp.zeros((), jnp.int32))
+
+
+def _constant_rule(c, step):
+    """A constant h, the last step shortened to land on t1."""
+    return dict(accept=step["solved"], finished=step["solved"] & step["last"], h_next=c["h"], status=step["status"],
+                t_b=jnp.where(step["last"], step["t1"], step["t"] + step["h"]), rejected=jnp.zeros((), bool), memory={})
+
+
+def _event_update(event, g, c, step, accept, clock):
+    """Locate a sign change of g on the accepted element's polynomial; returns the carry's event
+    fields and the event ``(hit, t, z)``."""
+    z, W, t, h = step["z"], step["W"], step["t"], step["h"]
+    dtype = z.dtype
+    g_b = g(step["t_b"], step["z1"])
+    hit = accept & _crossing(event, c["g_a"], g_b)
+    f = lambda a: g(_output._time(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
+    alpha = _output.locate(f, jnp.zeros((), dtype), jnp.ones((), dtype), c["g_a"])
+    at = _output.on_polynomial(z, W, alpha[None])[0]
+    t_ev = _output._time(z, W, alpha, t, h, clock)
+    slot = jnp.where(hit & (c["ev_count"] < event.capacity), c["ev_count"], event.capacity)
+    fields = dict(ev_t=c["ev_t"].at[slot].set(t_ev, mode="drop"), ev_z=c["ev_z"].at[slot].set(at, mode="drop"),
+                  ev_count=c["ev_count"] + hit, g_a=jnp.where(accept, g_b, c["g_a"]))
+    return fields, (hit, t_ev, at)
+
+
+def _initial_carry(method, z0, t0, h0, guess, max_steps, m, ts, dense, event, g, observe, acc0, estimate):
+    dtype = z0.dtype
+    q0, p0 = jnp.split(z0, 2)
+    c = dict(z=z0, comp=jnp.zeros_like(z0), t=t0, z_prev=z0, Z_prev=guess, hs=jnp.zeros((max_steps,), dtype),
+             h=jnp.asarray(h0, dtype), matrix=initial_matrix(guess, method.fixed_point),
+             status=input_status(q0, p0, h0), h_min=jnp.full((), jnp.inf, dtype), h_max=jnp.zeros((), dtype),
+             estimate=jnp.zeros((), dtype),
+             **{k: jnp.zeros((), jnp.int32) for k in ("steps", "rejected", "attempts", "total", "most", "trips")})
+    if observe is not None:
+        c["acc"] = acc0
+    if ts is not None:
+        first = jnp.where(ts[:, None] == t0, z0[None, :], jnp.nan)
+        nowhere = jnp.full(ts.shape, -1, jnp.int32)
+        c["saved"], c["index"] = (first, nowhere, jnp.zeros_like(ts)), jnp.sum(ts <= t0).astype(jnp.int32)
+    if dense:
+        c["node_t"] = jnp.full((max_steps + 1,), jnp.inf, dtype).at[0].set(t0)
+        c["node_z"] = jnp.full((max_steps + 1,) + z0.shape, jnp.nan, dtype).at[0].set(z0)
+        c["W"] = jnp.zeros((max_steps, m) + z0.shape, dtype)
+    if event is not None:
+        shape = (event.capacity,)
+        c.update(g_a=g(t0, z0), ev_t=jnp.full(shape, jnp.nan, dtype), ev_z=jnp.full(shape + z0.shape, jnp.nan, dtype),
+                 ev_count=jnp.zeros((), jnp.int32))
+    if estimate is True:
+        c["peak"] = peak_start(q0, p0, guess, h0)
+    return c
+
+
 def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, ts=None, dense=False,
         event=None, estimate=False, clock=None, s=None, observe=None, acc0=None):
     """Integrate from t0 to t1 with the step rule ``controller`` (None: the constant h0).
@@ -58,8 +151,9 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             True (the full estimate where the embedded one peaks) or False (NaN).
         observe, acc0: ``(acc, q, p) -> acc`` folded over the accepted states (``march``).
     Returns:
-        a dict: ``t``, ``z`` (final), ``status``, counts, ``h_min``, ``h_max``, ``estimate``,
-        and ``saved``, ``dense`` and ``events`` where asked.
+        the final carry, a dict: ``t``, ``z``, ``status``, counts, ``hs`` (the accepted steps),
+        ``h_min``, ``h_max``, ``estimate``, and ``saved``, the dense buffers and the events
+        where asked.
     """
     fn = element_residual(H)
     H_bound = bind_args(H, args)
@@ -68,34 +162,22 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     dtype = z0.dtype
     guess = method.initial_guess(q0, p0)
     m = method.polynomial(H_bound, q0, p0, guess, h0).shape[0]
-    pid = isinstance(controller, PIDController)
     t0, t1 = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype)
     tiny = 16 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))
-    counts = dict(steps=0, rejected=0, attempts=0, total=0, most=0, trips=0)
-    c = dict(z=z0, comp=jnp.zeros_like(z0), t=t0, z_prev=z0, Z_prev=guess, hs=jnp.zeros((max_steps,), dtype), h=jnp.asarray(h0, dtype), err1=jnp.ones((), dtype),
-             err2=jnp.ones((), dtype), landing=jnp.zeros((), jnp.int32),
-             matrix=initial_matrix(guess, method.fixed_point),
-             status=input_status(q0, p0, h0), h_min=jnp.full((), jnp.inf, dtype), h_max=jnp.zeros((), dtype),
-             estimate=jnp.zeros((), dtype), **{k: jnp.zeros((), jnp.int32) for k in counts})
+    if isinstance(controller, PIDController):
+        rule, memory = _pid_rule(controller, H_bound, m, tiny)
+        h0 = jnp.minimum(h0, controller.dtmax)
+    elif clock is not None:
+        rule, memory = _transform_rule(s, clock, view, tiny)
+    else:
+        rule, memory = _constant_rule, {}
+    g = None if event is None else (lambda t, z: event.g(t, *view(z)))
+    c = _initial_carry(method, z0, t0, h0, guess, max_steps, m, ts, dense, event, g, observe, acc0, estimate)
+    c.update(memory)
     if s is not None:
-        s0 = s(*_output.user_view(z0, clock))
+        s0 = s(*view(z0))
         c["status"] = jnp.where((s0 > 0) & jnp.isfinite(s0), c["status"], Status.TIME_TRANSFORM).astype(jnp.int32)
     c["done"] = c["status"] != Status.SUCCESS
-    if observe is not None:
-        c["acc"] = acc0
-    if ts is not None:
-        first = jnp.where(ts[:, None] == t0, z0[None, :], jnp.nan)
-        nowhere = jnp.full(ts.shape, -1, jnp.int32)
-        c["saved"], c["index"] = (first, nowhere, jnp.zeros_like(ts)), jnp.sum(ts <= t0).astype(jnp.int32)
-    if dense:
-        c["node_t"] = jnp.full((max_steps + 1,), jnp.inf, dtype).at[0].set(t0)
-        c["node_z"] = jnp.full((max_steps + 1,) + z0.shape, jnp.nan, dtype).at[0].set(z0)
-        c["W"] = jnp.zeros((max_steps, m) + z0.shape, dtype)
-    if event is not None:
-        g = lambda t, z: event.g(t, *view(z))
-        shape = (event.capacity,)
-        c.update(g_a=g(t0, z0), ev_t=jnp.full(shape, jnp.nan, dtype), ev_z=jnp.full(shape + z0.shape, jnp.nan, dtype),
-                 ev_count=jnp.zeros((), jnp.int32))
 
     def body(c):
         active = ~c["done"]
@@ -106,60 +188,24 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         constant = method.initial_guess(q, p)
         continued = method.initial_guess(q, p, (*jnp.split(c["z_prev"], 2), c["Z_prev"]))
         predicted = jnp.where(c["steps"] > 0, continued, constant)
-        if clock is None:
-            last = t + c["h"] * (1 + 4 * jnp.finfo(dtype).eps) >= t1
-            h = jnp.where(last, t1 - t, c["h"])
-        else:
-            h = c["h"]
+        last = t + c["h"] * (1 + 4 * jnp.finfo(dtype).eps) >= t1
+        h = jnp.where(last & (clock is None), t1 - t, c["h"])
         Z, matrix, iterations, status, trips = solve(
             fn, (method, q, p, h, args), predicted, constant, c["matrix"], state_scale(z), ~active, options)
         z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
         W = method.polynomial(H_bound, q, p, Z, h)
         solved = (status == Status.SUCCESS) & jnp.all(jnp.isfinite(z1))
         status = jnp.where((status == Status.SUCCESS) & ~solved, Status.NONFINITE, status)
-        h_next, err1, err2, landing = c["h"], c["err1"], c["err2"], c["landing"]
-        if pid:
-            e = embedded_error(H_bound, q, p, W, h)
-            err = jnp.where(solved, scaled_error(e, z, z1, controller), jnp.inf)
-            accept = err <= 1
-            factor = controller.next_factor(err, c["err1"], c["err2"], m, accept)
-            h_next = jnp.minimum(h * factor, controller.dtmax)
-            err1, err2 = jnp.where(accept, err, err1), jnp.where(accept, err1, err2)
-            t_b = jnp.where(last, t1, t + h)
-            at_floor = ~accept & ((h <= controller.dtmin) | (h_next <= tiny))
-            status = jnp.where(at_floor, Status.DTMIN, Status.SUCCESS)
-            finished = accept & last
-        elif clock is not None:
-            t_b = z1[clock]
-            s1 = s(*view(z1))
-            positive = (s1 > 0) & jnp.isfinite(s1)
-            status = jnp.where(solved & ~positive, Status.TIME_TRANSFORM, status)
-            solved = solved & positive
-            near = jnp.abs(t_b - t1) <= tiny
-            # Newton on the end time t_b(h), dt_b/dh = s(z1) (alpha beyond 1 extrapolates w)
-            shorten = solved & ~near & ((t_b > t1) | (landing > 0)) & (landing < _LANDING)
-            h_next = jnp.where(shorten, h * (1 + (t1 - t_b) / (h * s1)), h)
-            landing = landing + shorten
-            accept = solved & ~shorten
-            finished = accept & (near | (t_b > t1))
-            t_b = jnp.where(finished, t1, t_b)
-        else:
-            accept, finished, t_b = solved, solved & last, jnp.where(last, t1, t + h)
-        accept = accept & active
-        fail = active & (status != Status.SUCCESS)
-        new = dict(c, matrix=matrix, h=jnp.where(active, h_next, c["h"]), err1=err1, err2=err2, landing=landing)
-        end = dict(z=z1, comp=comp, t=t_b, z_prev=z, Z_prev=Z)
+        step = dict(z=z, z1=z1, W=W, h=h, t=t, t1=t1, last=last, solved=solved, status=status)
+        verdict = rule(c, step)
+        accept, finished = verdict["accept"] & active, verdict["finished"]
+        fail = active & (verdict["status"] != Status.SUCCESS)
+        new = dict(c, matrix=matrix, h=jnp.where(active, verdict["h_next"], c["h"]),
+                   **jax.tree.map(lambda a, b: jnp.where(active, a, b), verdict["memory"], {k: c[k] for k in memory}))
+        end = dict(z=z1, comp=comp, t=verdict["t_b"], z_prev=z, Z_prev=Z)
         if event is not None:
-            g_b = g(t_b, z1)
-            hit = accept & _crossing(event, c["g_a"], g_b)
-            f = lambda a: g(_output._time(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
-            zero = jnp.zeros((), dtype)
-            alpha = _output.locate(f, zero, jnp.ones((), dtype), c["g_a"])
-            at = _output.on_polynomial(z, W, alpha[None])[0]
-            t_ev = _output._time(z, W, alpha, t, h, clock)
-            slot = jnp.where(hit & (c["ev_count"] < event.capacity), c["ev_count"], event.capacity)
-            new.update(ev_t=c["ev_t"].at[slot].set(t_ev, mode="drop"), ev_z=c["ev_z"].at[slot].set(at, mode="drop"),
-                       ev_count=c["ev_count"] + hit, g_a=jnp.where(accept, g_b, c["g_a"]))
+            fields, (hit, t_ev, at) = _event_update(event, g, c, dict(step, t_b=verdict["t_b"]), accept, clock)
+            new.update(fields)
             if event.terminal:
                 stop = dict(end, z=at, comp=jnp.zeros_like(comp), t=t_ev)
                 end = jax.tree.map(lambda a, b: jnp.where(hit, a, b), stop, end)
@@ -168,9 +214,10 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             t_end = jnp.where(accept, end["t"], -jnp.inf)
             new["saved"], new["index"] = _output.fill_saves(c["saved"], c["index"], ts, (z, W, t, t_end, h, clock),
                                                             end["z"], c["steps"])
-        new["hs"] = c["hs"].at[jnp.where(accept, c["steps"], max_steps)].set(h, mode="drop")
-        if dense:  # written in place; a rejected step's index lies past the buffers
-            n = jnp.where(accept, c["steps"], max_steps + 1)
+        # written in place; a rejected step's index lies past the buffers
+        n = jnp.where(accept, c["steps"], max_steps + 1)
+        new["hs"] = c["hs"].at[n].set(h, mode="drop")
+        if dense:
             new["node_t"] = c["node_t"].at[n + 1].set(end["t"], mode="drop")
             new["node_z"] = c["node_z"].at[n + 1].set(end["z"], mode="drop")
             new["W"] = c["W"].at[n].set(W, mode="drop")
@@ -186,11 +233,11 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             new["acc"] = jax.tree.map(lambda a, b: jnp.where(accept, b, a), c["acc"], observe(c["acc"], *view(end["z"])))
         attempts = c["attempts"] + active
         out_of_steps = active & ~finished & (attempts >= max_steps) & ~fail
-        pid_reject = active & ~accept & ~fail if pid else jnp.zeros((), bool)
         new.update(
-            status=jnp.where(fail, status, jnp.where(out_of_steps, Status.MAX_STEPS, c["status"])).astype(jnp.int32),
-            done=c["done"] | fail | finished | out_of_steps,
-            steps=c["steps"] + accept, rejected=c["rejected"] + pid_reject, attempts=attempts,
+            status=jnp.where(fail, verdict["status"], jnp.where(out_of_steps, Status.MAX_STEPS, c["status"])
+                             ).astype(jnp.int32),
+            done=c["done"] | fail | (active & finished) | out_of_steps,
+            steps=c["steps"] + accept, rejected=c["rejected"] + (active & verdict["rejected"]), attempts=attempts,
             total=c["total"] + iterations * active, most=jnp.maximum(c["most"], iterations * active),
             trips=c["trips"] + trips * active,
             h_min=jnp.where(accept, jnp.minimum(c["h_min"], h), c["h_min"]),
@@ -199,8 +246,6 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         )
         return new
 
-    if estimate is True:
-        c["peak"] = peak_start(q0, p0, guess, h0)
     c = jax.lax.while_loop(lambda c: ~c["done"], body, c)
     if estimate is True:
         c["estimate"] = peak_estimate(method, H_bound, c["peak"])
