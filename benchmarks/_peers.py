@@ -148,3 +148,25 @@ def gauss_rk3(H, T, n, max_iterations=50):
 
 def is_python(run):
     return getattr(run, "is_python", False)
+
+
+def diffrax_pid_counted(solver, max_steps=1_000_000):
+    """diffrax ``solver`` with a PID controller (``rtol = atol = tol``, the initial step chosen by
+    diffrax) as ``run(z0, T, tol) -> (z1, status, accepted, rejected)``: the span and the
+    tolerance are arguments, so one compilation serves a whole tolerance sweep (``bench_adaptive``)."""
+
+    def make(H):
+        field = hamiltonian_field(H)
+
+        def run(z0, T, tol):
+            solution = diffrax.diffeqsolve(
+                diffrax.ODETerm(lambda t, z, args: field(z)), solver, 0.0, T, None, z0,
+                saveat=diffrax.SaveAt(t1=True), stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+                max_steps=max_steps, throw=False,
+            )
+            status = jnp.where(solution.result == diffrax.RESULTS.successful, 0, 1)
+            return solution.ys[-1], status, solution.stats["num_accepted_steps"], solution.stats["num_rejected_steps"]
+
+        return run
+
+    return make

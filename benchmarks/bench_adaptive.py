@@ -1,0 +1,505 @@
+"""Adaptive steps (issue 22, item 9): galerkin_jax's PIDController and TimeTransform against
+diffrax Dopri8 + PID and Tsit5 + PID, and against uniform steps over long runs.
+
+    python benchmarks/bench_adaptive.py [--quick] [--only a b c d] [--orbits 1000]
+
+Four parts, in one process, BLAS pinned to one thread:
+  a  Kepler e = 0.9 and e = 0.99, 10 orbits from apocentre: work-precision (run time and steps
+     against the final error, max-norm against the exact orbit), cG(k)+Gauss k with a
+     PIDController (k = 4, 6, 8; rtol = atol = tol swept), cG(6)+Gauss 6 with the
+     TimeTransform (h in tau swept), diffrax Dopri8 and Tsit5 with PID (rtol = atol = tol);
+     at each target final error the cost of each solver interpolated on its log-log curve, and
+     the ratio ours / best peer;
+  b  the Pythagorean three-body problem (masses 3, 4, 5 at rest, G = 1), t in [0, 5], with its
+     close encounters (steps from 1e-5 to 0.3): the same comparison against a reference
+     (cG(8)+Gauss 8 with the TimeTransform at a small step, checked against SciPy DOP853);
+  c  Kepler e = 0.9 over ``--orbits`` orbits (default 1000; 100 with --quick), cG(4)+Gauss 4
+     with the TimeTransform, the PIDController and uniform steps: the maximum energy error
+     over the nodes against run time, the first quarter's against the last quarter's, and the
+     uniform cost at the TimeTransform's energy error;
+  d  the share of the controller's estimate (``embedded_error``) in a step: the PID run again
+     with four more estimates per attempt (the same steps; the extra time over four is one
+     estimate's cost in the loop), and the estimate alone over the run's elements (in a
+     ``lax.scan``, and vmapped), each against the PID run's time per attempt.
+Compile time (ahead of time) is reported apart from the run time (best of several calls).
+Writes results/adaptive.json and results/adaptive_work_precision.png, adaptive_energy.png
+(``--quick`` and ``--only`` add a suffix unless ``--name`` is given).
+"""
+
+import os
+
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
+    os.environ[_var] = "1"  # a threaded LAPACK (the LU of cG(8)'s 32 unknowns) stalls on a busy machine
+
+import argparse  # noqa: E402
+import pathlib  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+import warnings  # noqa: E402
+
+import diffrax  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy.integrate  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+
+import _peers as peers  # noqa: E402
+import galerkin_jax as gj  # noqa: E402
+from _common import RESULTS, best_time, compiled, figure, write  # noqa: E402
+from galerkin_jax import scenes  # noqa: E402
+from galerkin_jax import _adaptive as adaptive  # noqa: E402
+from galerkin_jax._controllers import embedded_error  # noqa: E402
+
+warnings.filterwarnings("ignore", message="At least one element of `rtol` is too small")
+
+TARGETS = (1e-8, 1e-10, 1e-12)
+MAX_STEPS = 200_000
+PEERS = {"diffrax Dopri8+PID": diffrax.Dopri8(), "diffrax Tsit5+PID": diffrax.Tsit5()}
+# new field evaluations per attempt (first-same-as-last): Dopri8 13 stages, Tsit5 7
+PEER_STAGES = {"diffrax Dopri8+PID": 12, "diffrax Tsit5+PID": 6}
+
+
+def gauss(k):
+    return gj.CG(k, gj.gauss_legendre(k))
+
+
+# ---------------------------------------------------------------- problems
+
+
+KEPLER_H = scenes.kepler().H  # one function, so that both eccentricities share a compilation
+
+
+def kepler_problem(e, orbits=10):
+    """Kepler from apocentre (a = 1, period 2 pi) over ``orbits`` periods; the end is an apocentre
+    too, where the state is well conditioned (at pericentre dp/dt = 1/r^2 turns a phase error
+    of 1e-13 into a momentum error of 1e-11 at e = 0.9)."""
+    scene = scenes.kepler(e)
+    q0, p0 = scene.exact(np.pi)
+    T = 2 * np.pi * orbits
+    q1, p1 = scene.exact(np.pi + T)
+    return dict(H=KEPLER_H, q0=jnp.asarray(q0), p0=jnp.asarray(p0), T=T, z1=np.concatenate([q1, p1]),
+                tt_h=(1.6, 1.1, 0.8, 0.55, 0.4, 0.2))
+
+
+MASSES = np.array([3.0, 4.0, 5.0])
+
+
+def three_body(q, p):
+    """The planar three-body problem, G = 1: q, p of shape (6,) = three (x, y) pairs."""
+    x, v = q.reshape(3, 2), p.reshape(3, 2)
+    kinetic = jnp.sum(jnp.sum(v * v, axis=1) / (2 * MASSES))
+    potential = 0.0
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        d = x[i] - x[j]
+        potential = potential - MASSES[i] * MASSES[j] / jnp.sqrt(d @ d)
+    return kinetic + potential
+
+
+def pythagorean_problem(T=5.0):
+    """Burrau's problem: masses 3, 4, 5 at rest at (1, 3), (-2, -1), (1, -1). Its reference is
+    cG(8)+Gauss 8 with the TimeTransform at two small steps (their difference and the
+    distance to SciPy DOP853 at rtol = atol = 1e-14 are recorded)."""
+    q0, p0 = jnp.asarray([1.0, 3.0, -2.0, -1.0, 1.0, -1.0]), jnp.zeros(6)
+    run = jax.jit(lambda h: gj.integrate(three_body, q0, p0, method=gauss(8), h=h, t1=T,
+                                         controller=gj.TimeTransform(), max_steps=MAX_STEPS, error_estimate=False))
+    ends = []
+    for h in (2e-3, 1e-3):
+        sol = run(h)
+        assert int(sol.status) == 0, gj.status_message(sol.status)
+        ends.append(np.concatenate([sol.q[-1], sol.p[-1]]))
+    field = jax.jit(peers.hamiltonian_field(three_body))
+    dop = scipy.integrate.solve_ivp(lambda t, z: np.asarray(field(jnp.asarray(z))), (0.0, T),
+                                    np.concatenate([q0, p0]), method="DOP853", rtol=1e-14, atol=1e-14)
+    check = dict(tt_h_vs_h2=float(np.max(np.abs(ends[0] - ends[1]))),
+                 dop853_1e14=float(np.max(np.abs(dop.y[:, -1] - ends[1]))))
+    print(f"  Pythagorean reference: |TT(h) - TT(h/2)| = {check['tt_h_vs_h2']:.1e}, |DOP853 - TT| = "
+          f"{check['dop853_1e14']:.1e}")
+    return dict(H=three_body, q0=q0, p0=p0, T=T, z1=ends[1], reference=check,
+                tt_h=(0.32, 0.16, 0.08, 0.04, 0.02))
+
+
+# ---------------------------------------------------------------- runs
+
+
+def ours(method, kind):
+    """``run(q0, p0, T, knob) -> (z1, status, steps, rejected, newton)``: knob is the tolerance
+    (kind "PID": PIDController, first step 1e-3 T) or the step in tau (kind "TT": TimeTransform)."""
+    tt = kind == "TT"
+
+    def make(H):
+        def run(q0, p0, T, knob):
+            controller = gj.TimeTransform() if tt else gj.PIDController(knob, knob)
+            h = knob if tt else 1e-3 * T
+            sol = gj.integrate(H, q0, p0, method=method, h=h, t1=T, controller=controller, max_steps=MAX_STEPS,
+                               error_estimate=False)
+            s = sol.stats
+            return (jnp.concatenate([sol.q[-1], sol.p[-1]]), sol.status, s["num_steps"], s["num_rejected_steps"],
+                    s["num_newton_iterations"])
+
+        return run
+
+    return make
+
+
+def peer(solver):
+    counted = peers.diffrax_pid_counted(solver, max_steps=MAX_STEPS)
+
+    def make(H):
+        run = counted(H)
+
+        def adapted(q0, p0, T, tol):
+            z1, status, accepted, rejected = run(jnp.concatenate([q0, p0]), T, tol)
+            return z1, status, accepted, rejected, jnp.zeros((), jnp.int32)
+
+        return adapted
+
+    return make
+
+
+def solvers(quick):
+    ks = (6, 8) if quick else (4, 6, 8)
+    tols = {4: (1e-6, 1e-8, 1e-10, 1e-12, 1e-14), 6: (1e-4, 1e-6, 1e-8, 1e-10, 1e-12), 8: (1e-3, 1e-5, 1e-7, 1e-9, 1e-11)}
+    out = {f"cG({k})+Gauss {k} PID": (ours(gauss(k), "PID"), tols[k]) for k in ks}
+    out["cG(6)+Gauss 6 TimeTransform"] = (ours(gauss(6), "TT"), "tt_h")
+    peer_tols = (1e-6, 1e-8, 1e-10, 1e-12, 1e-14, 1e-15)
+    out.update({name: (peer(solver), peer_tols) for name, solver in PEERS.items()})
+    if quick:
+        out = {name: (make, knobs if isinstance(knobs, str) else knobs[1::2]) for name, (make, knobs) in out.items()}
+    return out
+
+
+def sweep(problems, quick):
+    """Every solver on every problem: one compilation per solver and problem family."""
+    records = []
+    for name, (make, knobs) in solvers(quick).items():
+        family_calls = {}
+        for label, prob in problems.items():
+            run = make(prob["H"])
+            args0 = (prob["q0"], prob["p0"], jnp.asarray(prob["T"]), jnp.asarray(1e-8))
+            key = id(prob["H"])
+            if key not in family_calls:
+                family_calls[key] = compiled(run, *args0)
+            compile_s, call = family_calls[key]
+            for knob in prob[knobs] if isinstance(knobs, str) else knobs:
+                args = (prob["q0"], prob["p0"], jnp.asarray(prob["T"]), jnp.asarray(knob))
+                z1, status, steps, rejected, newton = call(*args)
+                rec = dict(problem=label, solver=name, knob=knob, status=int(status), steps=int(steps),
+                           rejected=int(rejected), newton_iterations=int(newton), compile_s=compile_s,
+                           evaluations=evaluations(name, int(steps) + int(rejected), int(newton)))
+                if int(status) == 0:
+                    rec["error"] = float(np.max(np.abs(np.asarray(z1) - prob["z1"])))
+                    rec["run_s"] = best_time(call, *args, repeat=5, min_s=0.3, budget_s=2.0)
+                records.append(rec)
+                print(f"  {label:22s} {name:30s} knob {knob:7.0e}: status {rec['status']} steps {rec['steps']:6d} "
+                      f"rejected {rec['rejected']:4d} error {rec.get('error', np.nan):.2e} "
+                      f"run {1e3 * rec.get('run_s', np.nan):8.2f} ms (compile {compile_s:.1f} s)", flush=True)
+    return records
+
+
+def evaluations(name, attempts, iterations):
+    """Gradient (field) evaluations, a work count free of the machine's load: a peer's stages per
+    attempt; ours k per iteration of the root finder (the k Gauss points) plus one per attempt
+    (the estimate), a lower bound: Jacobian refreshes of the Newton iterations are left out."""
+    if name in PEER_STAGES:
+        return PEER_STAGES[name] * attempts
+    return int(name[3]) * iterations + attempts
+
+
+def cost_at(points, target, key="run_s"):
+    """The cost to reach a final error ``target`` on a curve (points in knob order): log-log
+    interpolation between the two neighbours that bracket it, the cheapest such crossing; None
+    where the curve never reaches the target."""
+    pts = [(p["error"], p[key]) for p in points if "error" in p]
+    best = None
+    for (e_a, c_a), (e_b, c_b) in zip(pts, pts[1:]):
+        if min(e_a, e_b) <= target <= max(e_a, e_b) and e_a != e_b:
+            w = (np.log(target) - np.log(e_a)) / (np.log(e_b) - np.log(e_a))
+            c = float(np.exp(np.log(c_a) + w * (np.log(c_b) - np.log(c_a))))
+            best = c if best is None else min(best, c)
+    reached = [c for e, c in pts if e <= target]
+    if reached:
+        best = min(reached) if best is None else min(best, min(reached))
+    return best
+
+
+def ratios(records, problems):
+    """Per problem and target: each solver's interpolated run time and steps, the best peer, the
+    best of ours, and their ratio."""
+    table = []
+    names = sorted({r["solver"] for r in records})
+    for label in problems:
+        for target in TARGETS:
+            row = dict(problem=label, target=target, run_s={}, steps={}, evaluations={})
+            for name in names:
+                pts = [r for r in records if r["problem"] == label and r["solver"] == name]
+                row["run_s"][name] = cost_at(pts, target)
+                row["steps"][name] = cost_at(pts, target, "steps")
+                row["evaluations"][name] = cost_at(pts, target, "evaluations")
+            reached = {n: c for n, c in row["run_s"].items() if c is not None}
+            peer_costs = {n: c for n, c in reached.items() if n in PEERS}
+            our_costs = {n: c for n, c in reached.items() if n not in PEERS}
+            if peer_costs and our_costs:
+                bp, bo = min(peer_costs, key=peer_costs.get), min(our_costs, key=our_costs.get)
+                row.update(best_peer=bp, best_ours=bo, ratio=our_costs[bo] / peer_costs[bp],
+                           ratio_pid=min((c for n, c in our_costs.items() if "PID" in n), default=np.nan) / peer_costs[bp])
+                ev = {n: c for n, c in row["evaluations"].items() if c is not None}
+                ev_peer = min(c for n, c in ev.items() if n in PEERS)
+                ev_ours = min(c for n, c in ev.items() if n not in PEERS)
+                row["ratio_evaluations"] = ev_ours / ev_peer
+            table.append(row)
+            if "ratio" in row:
+                print(f"  {label:22s} error {target:.0e}: ours {row['best_ours']} {1e3 * our_costs[bo]:.2f} ms, "
+                      f"peer {row['best_peer']} {1e3 * peer_costs[bp]:.2f} ms: ratio {row['ratio']:.2f} "
+                      f"(best PID {row['ratio_pid']:.2f}; evaluations {row['ratio_evaluations']:.2f})", flush=True)
+            else:
+                print(f"  {label:22s} error {target:.0e}: not reached by both sides {sorted(reached)}", flush=True)
+    return table
+
+
+def plot_work_precision(records, problems, path):
+    """Run time (top) and gradient evaluations (bottom, free of the machine's load) against the
+    final error, one column per problem."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(problems), figsize=(5.5 * len(problems), 8), squeeze=False)
+    for column, label in enumerate(problems):
+        for row, (key, unit) in enumerate((("run_s", "run time [s]"), ("evaluations", "gradient evaluations"))):
+            ax = axes[row, column]
+            for name in sorted({r["solver"] for r in records}):
+                pts = [r for r in records if r["problem"] == label and r["solver"] == name and "error" in r]
+                style = "--" if name in PEERS else "-"
+                ax.loglog([p["error"] for p in pts], [p[key] for p in pts], style, marker="o", ms=3, label=name)
+            ax.set_title(label)
+            ax.set_xlabel("final error (max-norm)")
+            ax.set_ylabel(unit)
+            ax.invert_xaxis()
+            ax.grid(True, which="both", alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------- (c) long runs
+
+
+def energy_run(kind, method, H, q0, p0, T, max_steps):
+    """``run(knob) -> (energy error at every node, node times, steps, status)`` for the
+    TimeTransform (knob h in tau), the PIDController (knob tol) or uniform steps (knob h; the
+    same while loop, ``save_at=[T]``)."""
+
+    def run(knob):
+        if kind == "TimeTransform":
+            kw = dict(h=knob, controller=gj.TimeTransform())
+        elif kind == "PID":
+            kw = dict(h=1e-2, controller=gj.PIDController(knob, knob))
+        else:
+            kw = dict(h=knob, save_at=jnp.asarray([T]))
+        sol = gj.integrate(H, q0, p0, method=method, t1=T, max_steps=max_steps, dense=True, error_estimate=False, **kw)
+        q, p = sol.dense.view(sol.dense.z)
+        H0 = H(q0, p0)
+        return jax.vmap(H)(q, p) - H0, sol.dense.t, sol.stats["num_steps"], sol.status, sol.stats["num_newton_iterations"]
+
+    return run
+
+
+def long_runs(orbits, quick):
+    e = 0.9
+    prob = kepler_problem(e, orbits)
+    H, q0, p0, T = prob["H"], prob["q0"], prob["p0"], prob["T"]
+    method = gauss(4)
+    knobs = {
+        "TimeTransform": (0.8, 0.4, 0.2),
+        "PID": (1e-6, 1e-8, 1e-10),
+        "uniform": (2e-2, 1e-2, 5e-3, 2.5e-3),
+    }
+    if quick:
+        knobs = {k: v[::2] for k, v in knobs.items()}
+    per_orbit = {"TimeTransform": 25 / min(knobs["TimeTransform"]), "PID": 600,
+                 "uniform": 2 * np.pi / min(knobs["uniform"])}
+    records, curves = [], {}
+    for kind, values in knobs.items():
+        max_steps = int(per_orbit[kind] * orbits * 1.1) + 64
+        run = energy_run(kind, method, H, q0, p0, T, max_steps)
+        compile_s, call = compiled(run, jnp.asarray(values[0]))
+        for knob in values:
+            t0 = time.perf_counter()  # long runs: one timed call
+            dH, t, steps, status, newton = jax.block_until_ready(call(jnp.asarray(knob)))
+            run_s = time.perf_counter() - t0
+            dH, t = np.abs(np.asarray(dH)), np.asarray(t)
+            ok = np.isfinite(t)
+            dH, t = dH[ok], t[ok]
+            quarter = [np.max(dH[(t >= a * T / 4) & (t <= (a + 1) * T / 4)]) for a in (0, 3)]
+            rec = dict(kind=kind, knob=knob, status=int(status), steps=int(steps), newton_iterations=int(newton),
+                       compile_s=compile_s, run_s=run_s, us_per_step=1e6 * run_s / int(steps),
+                       max_energy_error=float(np.max(dH)), first_quarter=float(quarter[0]),
+                       last_quarter=float(quarter[1]), last_over_first=float(quarter[1] / quarter[0]))
+            records.append(rec)
+            orbit = np.minimum((t / (2 * np.pi)).astype(int), orbits - 1)
+            per_orbit_max = np.zeros(orbits)
+            np.maximum.at(per_orbit_max, orbit, dH)
+            rec["max_energy_error_per_orbit"] = per_orbit_max.tolist()
+            curves[(kind, knob)] = per_orbit_max
+            print(f"  {kind:14s} knob {knob:7.0e}: status {rec['status']} steps {rec['steps']:8d} run {run_s:7.2f} s "
+                  f"max|dH| {rec['max_energy_error']:.2e} last/first quarter {rec['last_over_first']:.2f} "
+                  f"(compile {compile_s:.1f} s)", flush=True)
+    summary = []
+    for rec in records:
+        if rec["kind"] != "TimeTransform":
+            continue
+        uni = [dict(error=r["max_energy_error"], run_s=r["run_s"], steps=r["steps"]) for r in records
+               if r["kind"] == "uniform"]
+        cost = cost_at(uni, rec["max_energy_error"])
+        steps = cost_at(uni, rec["max_energy_error"], "steps")
+        summary.append(dict(h=rec["knob"], max_energy_error=rec["max_energy_error"], run_s=rec["run_s"],
+                            steps=rec["steps"], uniform_run_s=cost, uniform_steps=steps,
+                            ratio=None if cost is None else rec["run_s"] / cost,
+                            ratio_steps=None if steps is None else rec["steps"] / steps))
+        uniform = "not reached" if cost is None else (f"{cost:.2f} s, ratio {rec['run_s'] / cost:.3f}; "
+                                                      f"{steps:.0f} steps, ratio {rec['steps'] / steps:.3f}")
+        print(f"  TimeTransform h = {rec['knob']}: max|dH| {rec['max_energy_error']:.2e} in {rec['run_s']:.2f} s; "
+              f"uniform steps: {uniform}", flush=True)
+    return dict(orbits=orbits, e=e, method="cG(4)+Gauss 4", runs=records, tt_vs_uniform=summary), curves
+
+
+def plot_energy(curves, path):
+    styles = {"TimeTransform": "-", "PID": "--", "uniform": ":"}
+    with figure(path, ncols=1, size=(8, 4.5)) as (ax,):
+        for (kind, knob), per_orbit in curves.items():
+            ax.semilogy(np.arange(1, per_orbit.size + 1), np.maximum(per_orbit, 1e-17), styles[kind], lw=1.0,
+                        label=f"{kind} {knob:g}")
+        ax.set_xlabel("orbit")
+        ax.set_ylabel("max |H - H0| over the orbit's nodes")
+        ax.set_title("Kepler e = 0.9, cG(4)+Gauss 4")
+        ax.legend(fontsize=7, ncol=2)
+
+
+# ---------------------------------------------------------------- (d) the estimate's share
+
+
+def estimate_share(label, prob, k, tol):
+    """Time per attempt of a PID run against the embedded estimate of its elements alone."""
+    method = gauss(k)
+    H, q0, p0, T = prob["H"], prob["q0"], prob["p0"], prob["T"]
+    max_steps = 20_000
+
+    def pid(q0, p0):
+        return gj.integrate(H, q0, p0, method=method, h=1e-3 * T, t1=T, controller=gj.PIDController(tol, tol),
+                            max_steps=max_steps, dense=True)
+
+    compile_pid, call_pid = compiled(pid, q0, p0)
+    sol = call_pid(q0, p0)
+    assert int(sol.status) == 0
+    steps, rejected = int(sol.stats["num_steps"]), int(sol.stats["num_rejected_steps"])
+    run_pid = best_time(call_pid, q0, p0, repeat=5)
+    t, z, W = (np.asarray(x) for x in (sol.dense.t, sol.dense.z, sol.dense.W))
+    h = jnp.asarray(np.diff(t[: steps + 1]))
+    zs, Ws = jnp.asarray(z[:steps]), jnp.asarray(W[:steps])
+    d = q0.shape[0]
+
+    def one(z, W, h):
+        return embedded_error(H, z[:d], z[d:], W, h)
+
+    def scanned(zs, Ws, h):
+        return jax.lax.scan(lambda c, x: (jnp.maximum(c, jnp.max(jnp.abs(one(*x)))), None),
+                            jnp.zeros((), zs.dtype), (zs, Ws, h))[0]
+
+    _, call_scan = compiled(scanned, zs, Ws, h)
+    est_scan = best_time(call_scan, zs, Ws, h, repeat=5)
+    vmapped = lambda zs, Ws, h: jnp.max(jnp.abs(jax.vmap(one)(zs, Ws, h)))
+    _, call_vmap = compiled(vmapped, zs, Ws, h)
+    est_vmap = best_time(call_vmap, zs, Ws, h, repeat=5)
+    # in the loop: the same run with `extra` more estimates per attempt (same steps, decisions unchanged)
+    extra = 4
+    original = adaptive.embedded_error
+
+    def padded(H, q0, p0, W, h):
+        e = original(H, q0, p0, W, h)
+        more = sum(jnp.sum(original(H, q0, p0, W, h * (1 + i * jnp.finfo(h.dtype).eps))) for i in range(1, extra + 1))
+        return e + jnp.where(jnp.abs(more) > 1e300, 1.0, 0.0)  # depends on the extra estimates, changes nothing
+
+    H_padded = lambda q, p: H(q, p)  # a new function: no cached trace of the unpatched loop
+    adaptive.embedded_error = padded
+    try:
+        plain = lambda H: lambda q0, p0: gj.integrate(H, q0, p0, method=method, h=1e-3 * T, t1=T,
+                                                      controller=gj.PIDController(tol, tol), max_steps=max_steps,
+                                                      error_estimate=False).stats["num_steps"]
+        compile_padded, call_padded = compiled(plain(H_padded), q0, p0)
+    finally:
+        adaptive.embedded_error = original
+    _, call_plain = compiled(plain(H), q0, p0)
+    assert int(call_padded(q0, p0)) == int(call_plain(q0, p0)) == steps
+    run_plain, run_padded = np.inf, np.inf
+    for _ in range(4):  # interleaved: the machine's load changes between them
+        run_plain = min(run_plain, best_time(call_plain, q0, p0, repeat=5, min_s=0.3))
+        run_padded = min(run_padded, best_time(call_padded, q0, p0, repeat=5, min_s=0.3))
+    attempts = steps + rejected
+    per_attempt = run_plain / attempts
+    rec = dict(
+        problem=label, method=f"cG({k})+Gauss {k}", tol=tol, steps=steps, rejected=rejected,
+        newton_pid=int(sol.stats["num_newton_iterations"]),
+        compile_pid_s=compile_pid, compile_padded_s=compile_padded, run_pid_dense_s=run_pid, run_pid_s=run_plain,
+        run_padded_s=run_padded, extra_estimates=extra, pid_us_per_attempt=1e6 * per_attempt,
+        share_in_loop=(run_padded - run_plain) / extra / run_plain,
+        estimate_scan_us=1e6 * est_scan / steps, estimate_vmap_us=1e6 * est_vmap / steps,
+        share_scan=est_scan / steps / per_attempt, share_vmap=est_vmap / steps / per_attempt,
+        estimate_matches_run=bool(np.isclose(float(call_scan(zs, Ws, h)), float(sol.error_estimate), rtol=1e-6)),
+    )
+    print(f"  {label} {rec['method']}: {attempts} attempts, PID {rec['pid_us_per_attempt']:.1f} us/attempt; "
+          f"estimate alone {rec['estimate_scan_us']:.2f} us (scan), {rec['estimate_vmap_us']:.2f} us (vmap); "
+          f"share: in the loop {100 * rec['share_in_loop']:.1f} %, alone {100 * rec['share_scan']:.1f} % / "
+          f"{100 * rec['share_vmap']:.1f} %", flush=True)
+    return rec
+
+
+# ---------------------------------------------------------------- main
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="thinner sweeps, 100 orbits in part c (a smoke pass)")
+    parser.add_argument("--only", nargs="+", choices=("a", "b", "c", "d"), default=("a", "b", "c", "d"))
+    parser.add_argument("--orbits", type=int, default=None, help="orbits of part c (default 1000, --quick 100)")
+    parser.add_argument("--name", default=None)
+    opts = parser.parse_args()
+    suffix = ("_quick" if opts.quick else "") + ("" if len(opts.only) == 4 else "_" + "".join(opts.only))
+    name = opts.name or "adaptive" + suffix
+    results, start = dict(parts=list(opts.only)), time.perf_counter()
+    problems = {}
+    if "a" in opts.only:
+        problems.update({f"Kepler e={e}": kepler_problem(e) for e in (0.9, 0.99)})
+    if "b" in opts.only:
+        print("b: reference", flush=True)
+        problems["Pythagorean 3-body"] = pythagorean_problem()
+        results["pythagorean_reference"] = problems["Pythagorean 3-body"]["reference"]
+    if problems:
+        print("a/b: work-precision", flush=True)
+        records = sweep(problems, opts.quick)
+        results["work_precision"] = records
+        results["ratios"] = ratios(records, problems)
+        plot_work_precision(records, problems, RESULTS / f"{name}_work_precision.png")
+    if "c" in opts.only:
+        orbits = opts.orbits or (100 if opts.quick else 1000)
+        print(f"c: Kepler e = 0.9, {orbits} orbits", flush=True)
+        results["long"], curves = long_runs(orbits, opts.quick)
+        plot_energy(curves, RESULTS / f"{name}_energy.png")
+    if "d" in opts.only:
+        print("d: the estimate's share of a step", flush=True)
+        results["estimate_share"] = [
+            estimate_share("Kepler e=0.9", kepler_problem(0.9), 6, 1e-8),
+            estimate_share("Kepler e=0.9", kepler_problem(0.9), 8, 1e-8),
+            estimate_share("Pythagorean 3-body", dict(H=three_body, q0=jnp.asarray([1.0, 3.0, -2.0, -1.0, 1.0, -1.0]),
+                                                      p0=jnp.zeros(6), T=5.0), 6, 1e-8),
+        ]
+    results["total_s"] = time.perf_counter() - start
+    write(name, results)
+
+
+if __name__ == "__main__":
+    main()
