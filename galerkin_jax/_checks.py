@@ -90,25 +90,57 @@ def state_dtype(*arrays):
     return dtype
 
 
-def check_state(q0, p0):
-    """Convert q0, p0 to float arrays of one shape ``(d,)`` and one dtype; returns them.
+def _is_numbers(x):
+    """A (nested) list or tuple of numbers, which is read as one array (not a pytree)."""
+    if isinstance(x, (list, tuple)):
+        return len(x) > 0 and all(_is_numbers(v) for v in x)
+    return isinstance(x, (int, float, np.number)) and not isinstance(x, bool)
 
-    The dtype is that of the inputs (floats promote, integers become JAX's default float);
-    below float64 a ``Float32Warning`` is given once per process.
+
+def state_leaves(x, name):
+    """``(leaves, treedef, paths)`` of a state: an array of any shape or a pytree of arrays
+    (a nested list of numbers is one array); leaves as JAX arrays of real numbers."""
+    if _is_numbers(x):
+        x = jnp.asarray(x)
+    flat, treedef = jax.tree_util.tree_flatten_with_path(x)
+    paths, leaves = [jax.tree_util.keystr(path) for path, _ in flat], []
+    for path, (_, leaf) in zip(paths, flat):
+        try:
+            leaf = leaf if isinstance(leaf, jax.Array) else jnp.asarray(leaf)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name}{path} must be an array of real numbers, got {type(leaf).__name__}.") from None
+        kind = leaf.dtype
+        if kind == jnp.bool_ or not (jnp.issubdtype(kind, jnp.floating) or jnp.issubdtype(kind, jnp.integer)):
+            raise ValueError(f"{name}{path} must hold real numbers (a float dtype), got dtype {kind}.")
+        leaves.append(leaf)
+    return leaves, treedef, paths
+
+
+def check_state(q0, p0):
+    """Convert q0, p0 to states of one shape and one float dtype; returns them.
+
+    A state is an array of any shape with at least one element (``(d,)``, ``(N, 3)``, ...)
+    or a pytree of such arrays; q0 and p0 have the same structure and shapes. The dtype is
+    that of the inputs (floats promote, integers become JAX's default float); below float64
+    a ``Float32Warning`` is given once per process.
     """
-    q0, p0 = (x if isinstance(x, jax.Array) else jnp.asarray(x) for x in (q0, p0))
-    for name, x in (("q0", q0), ("p0", p0)):
-        if x.ndim != 1 or x.shape[0] == 0:
-            raise ValueError(f"{name} must be a 1-D array of length d >= 1, got shape {x.shape}.")
-    if q0.shape != p0.shape:
-        raise ValueError(f"q0 and p0 must have the same shape, got {q0.shape} and {p0.shape}.")
-    dtype = state_dtype(q0, p0)
+    (qs, q_tree, paths), (ps, p_tree, _) = state_leaves(q0, "q0"), state_leaves(p0, "p0")
+    if q_tree != p_tree:
+        raise ValueError(f"q0 and p0 must have the same structure, got {q_tree} and {p_tree}.")
+    if sum(x.size for x in qs) == 0:
+        raise ValueError(f"q0 must have at least one element (an array of any shape, or a pytree of arrays), "
+                         f"got shapes {[x.shape for x in qs]}.")
+    for path, q, p in zip(paths, qs, ps):
+        if q.shape != p.shape:
+            raise ValueError(f"q0{path} and p0{path} must have the same shape, got {q.shape} and {p.shape}.")
+    dtype = state_dtype(*qs, *ps)
     warn_if_low_precision(dtype)
-    q0, p0 = q0.astype(dtype), p0.astype(dtype)
-    for name, x in (("q0", q0), ("p0", p0)):
-        if _concrete(x) and not np.all(np.isfinite(np.asarray(x))):
-            raise ValueError(f"{name} must be finite, got {x}.")
-    return q0, p0
+    qs, ps = [x.astype(dtype) for x in qs], [x.astype(dtype) for x in ps]
+    for name, xs in (("q0", qs), ("p0", ps)):
+        for path, x in zip(paths, xs):
+            if _concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+                raise ValueError(f"{name}{path} must be finite, got {x}.")
+    return q_tree.unflatten(qs), p_tree.unflatten(ps)
 
 
 def check_step_size(h):

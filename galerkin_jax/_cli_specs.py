@@ -243,10 +243,12 @@ def _load_file(path):
 
 
 def _vector(value, name, path):
+    """A scene file's q0 or p0: an array of numbers of any shape (``(d,)``, or ``(N, 2)``,
+    ``(N, 3)`` for N bodies; H then receives states of that shape)."""
     try:
         x = np.atleast_1d(np.asarray(value, dtype=float))
     except (TypeError, ValueError) as error:
-        raise CliError(f"scene file {path!r}: {name} must be a vector of numbers ({error}).") from None
-    if x.ndim != 1:
-        raise CliError(f"scene file {path!r}: {name} must be a 1-D vector, got shape {x.shape}.")
+        raise CliError(f"scene file {path!r}: {name} must be an array of numbers ({error}).") from None
+    if x.size == 0:
+        raise CliError(f"scene file {path!r}: {name} must have at least one element, got shape {x.shape}.")
     return x

@@ -242,7 +242,7 @@ def run_command(options):
     integrate = functools.partial(
         gj.integrate, problem.L if spec.kind == "lvi" else problem.H, problem.q0.astype(_dtype()),
         problem.p0.astype(_dtype()), method=specs.build(spec), n_steps=n_steps, args=problem.args,
-        save_every=options.save_every, dense=_dense(spec, n_steps, problem.q0.shape[0]), progress=options.progress,
+        save_every=options.save_every, dense=_dense(spec, n_steps, problem.q0.size), progress=options.progress,
         krylov=options.krylov)
     solution, compile_s, run_s = timed(lambda h: integrate(h=h), np.asarray(h, _dtype()))
     energy, invariants = _observe(problem, solution)
@@ -296,7 +296,7 @@ def _hint(spec):
 def run_summary(problem, spec, solution, energy, invariants, h, times, files):
     """The summary of a run, for a reader who has not read the papers; returns the text."""
     t, status = np.asarray(solution.t), int(solution.status)
-    n_steps, d = round(float(t[-1]) / h), problem.q0.shape[0]
+    n_steps, d = round(float(t[-1]) / h), problem.q0.size
     lines = [
         ("scene", f"{problem.name}: {problem.description} (d = {d} degrees of freedom)"),
         ("method", specs.describe(spec)),
@@ -334,7 +334,7 @@ def _accuracy_lines(problem, solution):
         error = max(np.max(np.abs(np.asarray(solution.q[-1]) - q)), np.max(np.abs(np.asarray(solution.p[-1]) - p)))
         lines.append(("accuracy", f"error against the exact solution at t = {t_end:g}: {error:.2e} (max-norm)"))
     estimate = float(solution.error_estimate)
-    size = np.max(np.abs(np.concatenate([np.asarray(solution.q), np.asarray(solution.p)], axis=1)))
+    size = max(np.max(np.abs(np.asarray(solution.q))), np.max(np.abs(np.asarray(solution.p))))
     verdict = "; the steps are too large to mean much" if estimate >= 0.1 * size else ""
     lines.append(("estimate", f"largest estimated local error of one element: {estimate:.2e} (max-norm; "
                               f"{estimate / size:.1e} of the largest |q_i|, |p_i|{verdict})"))

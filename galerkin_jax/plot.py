@@ -28,12 +28,13 @@ def _axes(ax):
 
 
 def _one_run(solution):
-    """``(t, q, p)`` of one run as NumPy arrays; a batched (sweep) solution is refused."""
+    """``(t, q, p)`` of one run as NumPy arrays, q and p of shape ``(m,) + shape``; a batched
+    (sweep) solution is refused where its shape disagrees with t."""
     for name in ("t", "q", "p"):
         if not hasattr(solution, name):
             raise TypeError(f"solution must have fields t, q, p (a gj.Solution), got {type(solution).__name__}.")
     t, q, p = (np.asarray(x) for x in (solution.t, solution.q, solution.p))
-    if t.ndim != 1 or q.ndim != 2 or q.shape != p.shape or q.shape[0] != t.shape[0]:
+    if t.ndim != 1 or q.ndim < 2 or q.shape != p.shape or q.shape[0] != t.shape[0]:
         raise ValueError(
             f"solution: one run expected (t of shape (m,), q and p of shape (m, d)), got t {t.shape}, "
             f"q {q.shape}; index a batched solution first."
@@ -158,6 +159,7 @@ def orbit(solution, *, dims=(0, 1), ax=None, label=None, samples_per_step=8):
     """
     ax = _axes(ax)
     q, _, markevery = _sampled_states(solution, samples_per_step)
+    q = q.reshape(len(q), -1)  # a state of shape (N, 3): its entries in C order
     i, j = dims
     if not (0 <= i < q.shape[1] and 0 <= j < q.shape[1]):
         raise ValueError(f"dims must index q of dimension {q.shape[1]}, got {dims}.")
@@ -176,6 +178,7 @@ def phase_portrait(solution, *, index=0, ax=None, label=None, samples_per_step=8
     """
     ax = _axes(ax)
     q, p, markevery = _sampled_states(solution, samples_per_step)
+    q, p = q.reshape(len(q), -1), p.reshape(len(p), -1)
     if not 0 <= index < q.shape[1]:
         raise ValueError(f"index must be in [0, {q.shape[1]}), got {index}.")
     _trajectory(ax, q[:, index], p[:, index], markevery, label)
