@@ -41,7 +41,8 @@ HINTS["lvi"] = HINTS["vi"]
 
 SCENES_AND_METHODS = """\
 SCENE is one of oscillator, quartic, kepler, pendulum, fput, or the path of a Python file
-that defines H(q, p), q0 and p0 (optionally h, n_steps, args -- then H(q, p, args) --,
+that defines H(q, p), q0 and p0 (arrays of one shape: (d,), or (N, 2), (N, 3) for N bodies;
+optionally h, n_steps, args -- then H(q, p, args) --,
 invariants = {name: I(q, p)}, description, exact(t) -> (q, p), and L(q, qdot) for
 LagrangianVI).
 
