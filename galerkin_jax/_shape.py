@@ -68,7 +68,9 @@ class Unflattened:
 
 def flatten_state(q0, p0):
     """``(layout, q0, p0)``: the checked state flattened to vectors; ``layout`` None where it
-    is one 1-D array (then q0, p0 are returned as given)."""
+    is one 1-D array (then q0, p0 are returned as given, for ``prepare`` to check)."""
+    if all(isinstance(x, (jax.Array, np.ndarray)) and x.ndim == 1 for x in (q0, p0)):
+        return None, q0, p0
     q, p = _checks.check_state(q0, p0)
     leaves, treedef = jax.tree.flatten(q)
     if treedef == jax.tree.structure(0.0) and leaves[0].ndim == 1:
