@@ -14,7 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._configs import Configs, state_dtype
+from ._configs import Configs
+from ._state import Float32Warning, check_state, state_dtype, warn_if_low_precision  # noqa: F401
 from ._method import MEMBERS, check_method  # noqa: F401 (check_method: every entry point checks here)
 
 
@@ -25,67 +26,6 @@ def _concrete(x):
 def check_function(H, name="H"):
     if not callable(H):
         raise TypeError(f"{name} must be a callable H(q, p) or H(q, p, args), got {type(H).__name__}.")
-
-
-class Float32Warning(UserWarning):
-    """The library is computing in float32 (or a lower precision): JAX's default without x64.
-
-    Round-off then limits every result to ~1e-6 relative, energy conservation included.
-    Silence it with ``warnings.filterwarnings("ignore", category=gj.Float32Warning)``.
-    """
-
-
-_warned_low_precision = False
-
-
-def _caller_stacklevel():
-    """``stacklevel`` for ``warnings.warn`` that points at the first frame outside this package."""
-    package = os.path.dirname(os.path.abspath(__file__))
-    frame, level = sys._getframe(2), 2
-    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package + os.sep):
-        frame, level = frame.f_back, level + 1
-    return level
-
-
-def warn_if_low_precision(dtype):
-    """Warn, once per process, when the state's dtype is less precise than float64."""
-    global _warned_low_precision
-    eps = float(jnp.finfo(dtype).eps)
-    if _warned_low_precision or eps <= float(np.finfo(np.float64).eps):
-        return
-    floor = 10.0 ** np.ceil(np.log10(eps))
-    warnings.warn(
-        f"galerkin_jax is computing in {jnp.dtype(dtype).name} (eps = {eps:.1e}; JAX's default unless "
-        f"x64 is enabled): expect a round-off floor of ~{floor:.0e} relative in the states, and "
-        f"energy conserved only to ~{floor:.0e} relative (float64: ~1e-15). For float64 call "
-        'jax.config.update("jax_enable_x64", True) at start-up, before creating arrays. To '
-        'silence this warning: warnings.filterwarnings("ignore", category=gj.Float32Warning). '
-        "It is shown once per process.",
-        Float32Warning,
-        stacklevel=_caller_stacklevel(),
-    )
-    _warned_low_precision = True  # after warn: with an "error" filter every call raises
-
-
-def check_state(q0, p0):
-    """Convert q0, p0 to float arrays of one shape ``(d,)`` and one dtype; returns them.
-
-    The dtype is that of the inputs (floats promote, integers become JAX's default float);
-    below float64 a ``Float32Warning`` is given once per process.
-    """
-    q0, p0 = (x if isinstance(x, jax.Array) else jnp.asarray(x) for x in (q0, p0))
-    for name, x in (("q0", q0), ("p0", p0)):
-        if x.ndim != 1 or x.shape[0] == 0:
-            raise ValueError(f"{name} must be a 1-D array of length d >= 1, got shape {x.shape}.")
-    if q0.shape != p0.shape:
-        raise ValueError(f"q0 and p0 must have the same shape, got {q0.shape} and {p0.shape}.")
-    dtype = state_dtype(q0, p0)
-    warn_if_low_precision(dtype)
-    q0, p0 = q0.astype(dtype), p0.astype(dtype)
-    for name, x in (("q0", q0), ("p0", p0)):
-        if _concrete(x) and not np.all(np.isfinite(np.asarray(x))):
-            raise ValueError(f"{name} must be finite, got {x}.")
-    return q0, p0
 
 
 def check_step_size(h):

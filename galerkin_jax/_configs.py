@@ -1,6 +1,7 @@
 """Configurations of a sweep: stacked methods, states, step sizes and args (``Configs``, ``grid``)."""
 
 import itertools
+from collections.abc import Mapping
 from typing import Any
 
 import jax
@@ -8,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._method import check_method, describe_method
+from ._state import check_state, state_dtype
 from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
 
@@ -18,7 +20,9 @@ class Configs:
 
     Attributes:
         method: a method pytree with stacked quadrature arrays (see ``stack_methods``).
-        q0, p0: shape ``(B, d)``.
+        q0, p0: shape ``(B, d)``, or ``(B,) + shape`` for states of any shape, or pytrees of
+            arrays whose leaves lead with B (``sweep`` flattens them; H sees each member's
+            state in its shape).
         h: shape ``(B,)``.
         args: ``None`` or a pytree whose leaves have a leading axis B.
     """
@@ -32,14 +36,6 @@ class Configs:
     @property
     def size(self):
         return self.h.shape[0]
-
-
-def state_dtype(*arrays):
-    """The real floating dtype the library computes in for these state arrays."""
-    dtype = jnp.result_type(*arrays, float)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"q0 and p0 must be real arrays, got dtype {dtype}.")
-    return dtype
 
 
 def pad_rule(rule, n):
@@ -143,8 +139,17 @@ def _step_axis(h):
     return hs
 
 
+def _is_part(x):
+    """One of q0, p0: a 1-D sequence or array, an array of any rank >= 1, or a dict of arrays."""
+    return _ndim(x) == 1 or (isinstance(x, (np.ndarray, jax.Array)) and x.ndim >= 1) or isinstance(x, Mapping)
+
+
 def _is_state(x):
-    return isinstance(x, (tuple, list, np.ndarray, jax.Array)) and len(x) == 2 and _ndim(x[0]) == 1 and _ndim(x[1]) == 1
+    return isinstance(x, (tuple, list, np.ndarray, jax.Array)) and len(x) == 2 and _is_part(x[0]) and _is_part(x[1])
+
+
+def _flat_vector(x):
+    return isinstance(x, jax.Array) and x.ndim == 1
 
 
 def _state_axis(state):
@@ -164,14 +169,23 @@ def _state_axis(state):
             "state must be one state (q0, p0), a pair of 1-D arrays of one length d, or a list of such "
             f"pairs (all of one d); {bad}."
         )
-    states = [tuple(jnp.asarray(x) for x in s) for s in states]
+    as_part = lambda x: jnp.asarray(x) if _ndim(x) is not None else jax.tree.map(jnp.asarray, x)
+    states = [tuple(as_part(x) for x in s) for s in states]
     for name, (q0, p0) in zip(names, states):
-        if q0.shape != p0.shape or q0.shape[0] == 0:
+        if _flat_vector(q0) and _flat_vector(p0) and (q0.shape != p0.shape or q0.shape[0] == 0):
             raise ValueError(f"{name}: q0 and p0 need one length d >= 1, got {q0.shape[0]} and {p0.shape[0]}.")
-        if not all(isinstance(x, jax.core.Tracer) or np.all(np.isfinite(np.asarray(x))) for x in (q0, p0)):
+        if not all(isinstance(x, jax.core.Tracer) or np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves((q0, p0))):
             raise ValueError(f"{name} must be finite, got q0 = {q0}, p0 = {p0}.")
+        try:
+            check_state(q0, p0)
+        except ValueError as error:
+            raise ValueError(f"{name}: {error}") from None
+    layout = lambda x: (jax.tree.structure(x), [jnp.shape(v) for v in jax.tree.leaves(x)])
     for name, (q0, _) in zip(names, states):
-        if q0.shape != states[0][0].shape:
+        if not (_flat_vector(q0) and _flat_vector(states[0][0])) and layout(q0) != layout(states[0][0]):
+            raise ValueError(f"state: all states of one sweep need one shape; {names[0]} has "
+                             f"{layout(states[0][0])}, {name} has {layout(q0)}. Run one sweep per shape.")
+        if _flat_vector(q0) and q0.shape != states[0][0].shape:
             raise ValueError(
                 f"state: all states of one sweep need one dimension d; {names[0]} has d = "
                 f"{states[0][0].shape[0]}, {name} has d = {q0.shape[0]}. Run one sweep per dimension."
@@ -214,8 +228,9 @@ def grid(*, method, h, state, args=None):
         method: a method, or a list of methods of one kind and degree (e.g. all ``CG(2, rule)``;
             rules of any size, see ``stack_methods``).
         h: a step size > 0, or a list (tuple, 1-D array) of them.
-        state: one state ``(q0, p0)``, a pair of 1-D arrays of one length d, or a list of such
-            pairs, all of one d.
+        state: one state ``(q0, p0)``, a pair of 1-D arrays of one length d (or of arrays of
+            any one shape, e.g. ``(N, 3)``, or of dicts of arrays of one structure), or a list
+            of such pairs, all of one shape.
         args: None; a list, which is the axis (one args pytree per entry, all of one structure
             and shape); or anything else (a number, an array, a tuple, a dict), which is one
             args pytree shared by every configuration. One list as args: ``args=[[a, b]]``.
@@ -228,14 +243,15 @@ def grid(*, method, h, state, args=None):
     methods, hs, states = _method_axis(method), _step_axis(h), _state_axis(state)
     args_axis = _args_axis(args)
     rows = list(itertools.product(range(len(methods)), range(len(hs)), range(len(states)), range(len(args_axis))))
-    dtype = state_dtype(*(x for s in states for x in s))
+    dtype = state_dtype(*jax.tree.leaves(states))
+    stack = lambda i: jax.tree.map(lambda *x: jnp.stack(x).astype(dtype), *[states[r[2]][i] for r in rows])
     stacked_args = None
     if args is not None:
         stacked_args = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *[args_axis[r[3]] for r in rows])
     return Configs(
         method=stack_methods([methods[r[0]] for r in rows]),
-        q0=jnp.stack([states[r[2]][0] for r in rows]).astype(dtype),
-        p0=jnp.stack([states[r[2]][1] for r in rows]).astype(dtype),
+        q0=stack(0),
+        p0=stack(1),
         h=jnp.stack([jnp.asarray(hs[r[1]]) for r in rows]).astype(dtype),
         args=stacked_args,
     )

@@ -1,11 +1,12 @@
 """One time element (``step``), many (``integrate``), and the one-step Jacobian (``amplification_matrix``)."""
 
+import dataclasses
 import functools
 
 import jax
 import jax.numpy as jnp
 
-from . import _adaptive, _checks, _output, _replay, _span
+from . import _adaptive, _checks, _output, _replay, _shape, _span
 from ._controllers import Events
 from ._solve import Status
 from ._march import bind_args, input_status, march, nan_if_failed, solve_element, solver_options
@@ -26,7 +27,9 @@ class Solution:
         t: shape ``(m,)``: the save times (``save_at``); for fixed steps every ``save_every``-th
             node from ``t0`` (``m = n_steps // save_every + 1``); for a controller's run without
             ``save_at``, ``[t0, t_end]``.
-        q, p: shape ``(m, d)``, the states at ``t``. After the first failure the states are NaN.
+        q, p: the states at ``t``, each of shape ``(m,) + shape`` for states of that shape
+            (``(m, d)`` for 1-D states; a pytree state: its leaves with the leading axis m).
+            After the first failure the states are NaN.
         status: int32 ``Status`` code, 0 when every implicit solve converged. Status 0 promises
             converged solves, not accurate steps: read ``error_estimate`` for that.
         stats: ``num_newton_iterations`` (total), ``max_newton_iterations`` (largest count in
@@ -39,6 +42,8 @@ class Solution:
             over (q, p), shape (); NaN for a failed run and for ``LagrangianVI``.
         dense: ``DenseOutput`` with ``integrate(..., dense=True)``, else None.
         events: ``Events`` with ``integrate(..., events=)``, else None.
+        layout: static; the layout of a state that is not one 1-D array (``_shape.Layout``),
+            else None.
     """
 
     t: jax.Array
@@ -49,6 +54,7 @@ class Solution:
     error_estimate: jax.Array
     dense: object = None
     events: object = None
+    layout: object = dataclasses.field(default=None, metadata=dict(static=True))
 
     def evaluate(self, t):
         """``(q, p)`` at the times ``t`` (scalar or 1-D) in ``[t0, t1]``: the states at the nodes,
@@ -57,7 +63,7 @@ class Solution:
         after a failed element (or a terminal event) gives NaN.
 
         Returns:
-            ``(q, p)``, each shape ``t.shape + (d,)``.
+            ``(q, p)``, each shape ``t.shape + shape`` (states of that shape; a pytree: each leaf).
         """
         dense = self.dense
         if dense is None:
@@ -73,7 +79,8 @@ class Solution:
             if not bool(jnp.all((t >= lo) & (t <= hi))):
                 raise ValueError(f"t must lie in [t0, t1] = [{lo}, {hi}], got values outside.")
         q, p = dense.view(_evaluate(dense, jnp.atleast_1d(t)))
-        return q.reshape(t.shape + q.shape[-1:]), p.reshape(t.shape + p.shape[-1:])
+        q, p = q.reshape(t.shape + q.shape[-1:]), p.reshape(t.shape + p.shape[-1:])
+        return (q, p) if self.layout is None else (self.layout.unflatten(q), self.layout.unflatten(p))
 
 
 @jax.jit
@@ -92,6 +99,7 @@ def prepare(H, q0, p0, method, h, args):
     return q0, p0, jnp.asarray(h, q0.dtype)
 
 
+@_shape.on_step
 def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS, krylov=False):
     """One time element: ``(q, p) -> (q1, p1)``.
 
@@ -100,12 +108,13 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEW
 
     Args:
         H: ``H(q, p)`` or ``H(q, p, args)`` returning a scalar (``L(q, qdot)`` for LagrangianVI).
-        q, p: shape ``(d,)``.
+        q, p: arrays of one shape (``(d,)``, ``(N, 3)``, ...) or pytrees of arrays of one
+            structure; H receives them so.
         method: e.g. ``CG(k, rule)``, ``DG(k, rule)``.
         h: step size, scalar > 0.
         max_newton_iterations, krylov: as in ``integrate``.
     Returns:
-        ``(q1, p1)``, each shape ``(d,)``.
+        ``(q1, p1)``, in the shape (structure) of q and p.
     """
     q, p, h = prepare(H, q, p, method, h, args)
     _checks.check_iterations(max_newton_iterations)
@@ -119,6 +128,7 @@ def _step(H, q, p, method, h, args, options):
     return q1, p1, jnp.maximum(status, input_status(q, p, h))
 
 
+@_shape.on_integrate
 def integrate(
     H,
     q0,
@@ -152,7 +162,10 @@ def integrate(
 
     Args:
         H: ``H(q, p)`` or ``H(q, p, args)`` (``L(q, qdot)`` for LagrangianVI).
-        q0, p0: shape ``(d,)`` (p0 is the initial momentum for LagrangianVI too).
+        q0, p0: arrays of one shape (``(d,)``, ``(N, 3)``, ...) or pytrees of arrays of one
+            structure (p0 is the initial momentum for LagrangianVI too). H, the event's g and
+            the time transformation's s receive states in this shape; the solver works on the
+            flattened vectors (``_shape``), of length d = the number of elements of q0.
         method: a method object (CG, DG, GalerkinVI, ...).
         h: step size > 0 (a controller's first step; a time transformation's step in tau); may
             be traced (vmap over step sizes).
@@ -303,6 +316,7 @@ def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, even
                     dense=dense_output, events=events)
 
 
+@_shape.on_amplification
 def amplification_matrix(H, q, p, *, method, h, args=None):
     """A = d z_1 / d z_0 of one element, by ``jax.jacfwd`` through the implicit solve [GBS, eq. (48)].
 
@@ -311,7 +325,9 @@ def amplification_matrix(H, q, p, *, method, h, args=None):
     gives a matrix of NaN.
 
     Returns:
-        shape ``(2d, 2d)`` in the ordering ``z = (q, p)``.
+        shape ``(2d, 2d)`` in the ordering ``z = (q, p)``. A state of another shape or a
+        pytree enters flattened: d is its number of elements and q's entries are its leaves in
+        pytree order, each in C (row-major) order, e.g. ``q.ravel()`` for an ``(N, 3)`` array.
     """
     q, p, h = prepare(H, q, p, method, h, args)
     d = q.shape[0]

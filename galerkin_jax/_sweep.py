@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from . import _adaptive, _checks, _span
+from . import _adaptive, _checks, _shape, _span
 from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, DEFAULT_MAX_STEPS, solution
 from ._output import user_view
 from ._march import bind_args, march, nan_if_failed, solver_options
@@ -32,7 +32,7 @@ class SweepResult:
             passed; for ``LagrangianVI`` that is L, not an energy: use ``invariants``.
         invariant_errors: name -> max_n max_i |I_n - I_0|_i / max_i |I_0|_i (absolute where I_0 = 0).
         final_error: max |(q_N, p_N) - reference| or None.
-        q, p: the final state, ``(B, d)``.
+        q, p: the final state, ``(B,) + shape`` (a pytree state: each leaf with the leading axis B).
         status: ``Status`` codes; NaN diagnostics go with a nonzero status.
         error_estimate: the largest estimated local error of each run (``Solution.error_estimate``).
         num_newton_iterations, max_newton_iterations: total and largest per element.
@@ -164,6 +164,7 @@ def _shard(tree, devices):
     return jax.device_put(padded, sharding)
 
 
+@_shape.on_sweep
 def sweep(
     H,
     configs,
@@ -196,7 +197,7 @@ def sweep(
         max_steps: a controller's cap on attempts per configuration (default 4096); with fixed
             steps to t1 and traced step sizes, the elements reserved per member. Static.
         invariants: ``{name: I(q, p)}`` whose relative change is tracked (e.g. angular momentum).
-        reference: ``(q_ref, p_ref)`` of shape ``(B, d)`` for ``final_error``.
+        reference: ``(q_ref, p_ref)``, each like ``configs.q0`` (``(B,) + shape``), for ``final_error``.
         save_every: store a trajectory with this stride (``SweepResult.solution``); default
             none; fixed steps of ``n_steps`` only.
         krylov: Newton-Krylov for systems of more than 256 unknowns (see ``integrate``). Static.

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import galerkin_jax as gj
-from galerkin_jax import _checks, scenes
+from galerkin_jax import _checks, _state, scenes
 from galerkin_jax._checks import Float32Warning
 
 F32 = jnp.float32
@@ -77,7 +77,7 @@ def test_float32_warning_is_given_once_per_process_and_says_what_to_do():
 
 
 def test_float32_warning_can_be_silenced_and_is_not_given_for_float64(monkeypatch):
-    monkeypatch.setattr(_checks, "_warned_low_precision", False)
+    monkeypatch.setattr(_state, "_warned_low_precision", False)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         _checks.check_state(jnp.asarray(KEPLER.q0), jnp.asarray(KEPLER.p0))
@@ -85,7 +85,7 @@ def test_float32_warning_can_be_silenced_and_is_not_given_for_float64(monkeypatc
         warnings.filterwarnings("ignore", category=Float32Warning)
         _checks.check_state(Q32, P32)
         assert not [w for w in caught if issubclass(w.category, Float32Warning)]
-    monkeypatch.setattr(_checks, "_warned_low_precision", False)
+    monkeypatch.setattr(_state, "_warned_low_precision", False)
     with pytest.warns(Float32Warning, match="float32"):
         q1, p1 = gj.step(KEPLER.H, Q32, P32, method=gj.CG(1, gj.midpoint()), h=0.1)
     assert q1.dtype == p1.dtype == F32

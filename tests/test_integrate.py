@@ -119,7 +119,7 @@ def test_traced_invalid_inputs_are_reported_through_status():
     "kwargs, error, match",
     [
         (dict(q0=jnp.zeros(3)), ValueError, "same shape"),
-        (dict(q0=jnp.zeros((2, 1))), ValueError, "1-D"),
+        (dict(q0=jnp.zeros((2, 1))), ValueError, r"same shape, got \(2, 1\) and \(2,\)"),
         (dict(q0=jnp.array([jnp.nan, 0.0])), ValueError, "finite"),
         (dict(h=0.0), ValueError, "h must be finite and > 0"),
         (dict(h=-1.0), ValueError, "h must be finite and > 0"),
