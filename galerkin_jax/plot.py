@@ -125,8 +125,8 @@ def invariant_error(solution, invariant, *, name="L", relative=True, ax=None, la
 
 def _sampled_states(solution, samples_per_step):
     """``(q, p, markevery)``: with dense output (``getattr(solution, "dense", None) is not
-    None``) every element's polynomial sampled ``samples_per_step`` times (per saved interval
-    if the dense output does not record its step ``h``), else the saved states; ``markevery``
+    None``) every element's polynomial sampled ``samples_per_step`` times (evenly in time, as
+    many samples as elements times ``samples_per_step``), else the saved states; ``markevery``
     puts the markers on the saved states."""
     t, q, p = _one_run(solution)
     if getattr(solution, "dense", None) is None:
@@ -134,8 +134,8 @@ def _sampled_states(solution, samples_per_step):
     n = samples_per_step
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"samples_per_step must be an integer >= 1, got {samples_per_step!r}.")
-    h = getattr(solution.dense, "h", None)
-    per_save = 1 if h is None or len(t) < 2 else max(1, round(float((t[1] - t[0]) / h)))
+    elements = int(np.sum(np.isfinite(np.asarray(solution.dense.t)))) - 1  # a controller's buffers: inf past the end
+    per_save = max(1, elements // max(len(t) - 1, 1))
     intervals = (len(t) - 1) * per_save * samples_per_step
     fine = np.linspace(t[0], t[-1], intervals + 1)
     q, p = solution.evaluate(jnp.asarray(fine, dtype=jnp.asarray(solution.t).dtype))
