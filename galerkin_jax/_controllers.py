@@ -98,8 +98,8 @@ class TimeTransform:
     (module docstring) with dt/dtau = s(q, p) and the constant step h in tau.
 
     Args:
-        s: ``s(q, p) -> scalar > 0``, the step density (small where the motion is fast), or
-            ``s(q, p, args)`` when ``args`` is passed; None: ``default_step_density``. A
+        s: ``s(q, p) -> scalar > 0``, the step density (small where the motion is fast), with
+            q and p in the state's own shape, or ``s(q, p, args)`` when ``args`` is passed; None: ``default_step_density``. A
             non-positive or non-finite s inside a run ends it with status TIME_TRANSFORM.
     """
 
@@ -111,7 +111,7 @@ class Event:
     """A sign change of ``g(t, q, p)`` (a scalar), located on the element polynomial.
 
     Args:
-        g: the event function.
+        g: the event function; q and p in the state's own shape.
         direction: 0 any crossing, +1 only upward (g from < 0 to >= 0), -1 only downward.
         terminal: end the run at the first event; its time and state are the run's last.
         capacity: the number of events stored (``Solution.events``); later ones are counted.
