@@ -19,9 +19,8 @@ from ._controllers import embedded_error
 from ._solve import Options, Status, initial_matrix, solve
 
 
-# the Gauss-Seidel sweep for states of more degrees of freedom d than this (``element_residual``).
-# Measured per step against the plain fixed point: d = 3, 10 % slower; 8, even; 12, cG(1) 27 %
-# faster and cG(3) even; 16 and 32, 20-26 % faster
+# the Gauss-Seidel sweep for states of more degrees of freedom d than this (``element_residual``):
+# below it the loop's kernels cost more than the sweep's better rate saves (docs/solver.md)
 SWEEP_DIMENSION = 8
 
 
@@ -99,7 +98,7 @@ def compensated_add(x, dx, c):
 
 # the orders of extrapolation of the continuation's misses the predictor chooses from
 # (``miss_correction``): 6 where the misses are smooth, 2 (linear) where they are not (the
-# discrete gradient's quartic scene); the figures are in the README's predictor bullet
+# discrete gradient's quartic scene); docs/solver.md gives the measurements
 MISS_ORDERS = (2, 6)
 
 
