@@ -8,8 +8,9 @@ import jax.numpy as jnp
 from . import _basis, _checks
 from ._march import bind_args, input_status, march, nan_if_failed, solve_element, solver_options
 from ._pytree import pytree_dataclass
+from ._solve import SolverOptions, throw_if_failed
 
-DEFAULT_MAX_NEWTON_ITERATIONS = 48  # the fixed point may take 24 of them before it switches to Newton
+DEFAULT_MAX_NEWTON_ITERATIONS = SolverOptions.max_iterations
 
 
 @pytree_dataclass
@@ -38,8 +39,10 @@ class Solution:
             first failure the remaining states are NaN. Status 0 promises converged solves,
             not accurate steps: read ``error_estimate`` for that.
         stats: ``num_newton_iterations`` (total), ``max_newton_iterations`` (largest count in
-            one element) and ``batch_newton_iterations`` (the iterations the batch ran:
-            under ``vmap`` each element waits for the batch's slowest member).
+            one element), ``batch_newton_iterations`` (the iterations the batch ran:
+            under ``vmap`` each element waits for the batch's slowest member) and
+            ``num_accepted_stalled`` (elements accepted other than at round-off: their updates
+            stopped shrinking with the residual below sqrt(eps) of the state, see ``Status``).
         error_estimate: the largest estimated local (one-element) error of the run, max-norm
             over (q, p), shape () (see ``_defect``); NaN for a failed run and for
             ``LagrangianVI``.
@@ -101,25 +104,29 @@ def prepare(H, q0, p0, method, h, args):
     return q0, p0, jnp.asarray(h, q0.dtype)
 
 
-def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS, krylov=False):
+def step(H, q, p, *, method, h, args=None, max_newton_iterations=None, krylov=None, solver=None, throw=False,
+         return_status=False):
     """One time element: ``(q, p) -> (q1, p1)``.
 
-    A failed solve returns NaN states (never a plausible one); ``integrate(..., n_steps=1)``
-    gives its status and message.
+    A failed solve returns NaN states (never a plausible one).
 
     Args:
         H: ``H(q, p)`` or ``H(q, p, args)`` returning a scalar (``L(q, qdot)`` for LagrangianVI).
         q, p: shape ``(d,)``.
         method: e.g. ``CG(k, rule)``, ``DG(k, rule)``.
         h: step size, scalar > 0.
-        max_newton_iterations, krylov: as in ``integrate``.
+        max_newton_iterations, krylov, solver, throw: as in ``integrate``.
+        return_status: also return the int32 ``Status`` code (works under jit).
     Returns:
-        ``(q1, p1)``, each shape ``(d,)``.
+        ``(q1, p1)``, each shape ``(d,)``; ``(q1, p1, status)`` with ``return_status``.
     """
     q, p, h = prepare(H, q, p, method, h, args)
-    _checks.check_iterations(max_newton_iterations)
-    q1, p1, status = _step(H, q, p, method, h, args, solver_options(method, max_newton_iterations, bool(krylov)))
-    return nan_if_failed(q1, status), nan_if_failed(p1, status)
+    options = solver_options(method, max_newton_iterations, krylov, solver)
+    q1, p1, status = _step(H, q, p, method, h, args, options)
+    if throw:
+        throw_if_failed(status)
+    q1, p1 = nan_if_failed(q1, status), nan_if_failed(p1, status)
+    return (q1, p1, status) if return_status else (q1, p1)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
@@ -138,8 +145,10 @@ def integrate(
     n_steps,
     args=None,
     save_every=1,
-    max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
-    krylov=False,
+    max_newton_iterations=None,
+    krylov=None,
+    solver=None,
+    throw=False,
     checkpoint=False,
     dense=False,
     progress=False,
@@ -158,14 +167,21 @@ def integrate(
         n_steps: number of elements, a multiple of ``save_every``. Static.
         args: pytree passed to ``H`` as third argument; may be traced.
         save_every: store every ``save_every``-th state. Static.
-        max_newton_iterations: iteration cap per element (the fixed-point iteration counts in
+        max_newton_iterations: iteration cap per element, a shorthand for
+            ``SolverOptions.max_iterations`` (default 48; the fixed-point iteration counts in
             blocks of two, an element of more than 32 unknowns starting with four, so a cap is
             rounded up to a block's end there). Static.
-        krylov: solve by Newton-Krylov (GMRES on Hessian-vector products) where the fixed-point
-            iteration is too slow in a system of more than 256 unknowns per element (k * 2d for
-            cG(k), (k + 1) * 2d for dG(k)), which without it has the fixed point only: stiff
-            large systems, h omega >~ 1, need it. It compiles about a second longer. dG(k >= 1)
-            has no fixed point and always uses it. Static.
+        krylov: a shorthand for ``SolverOptions.krylov`` (default False): solve by
+            Newton-Krylov (GMRES on Hessian-vector products) where the fixed-point iteration is
+            too slow in a system of more than 256 unknowns per element (k * 2d for cG(k),
+            (k + 1) * 2d for dG(k)), which without it has the fixed point only: stiff large
+            systems, h omega >~ 1, need it. dG(k >= 1) has no fixed point and always uses it.
+            Static.
+        solver: ``SolverOptions``, the implicit solve's options (default ``SolverOptions()``);
+            the two shorthands above replace their fields. Static.
+        throw: raise ``SolverError`` with the status's message when the status is nonzero.
+            Only outside ``jit``/``vmap``/``grad``: there the status is traced, and ``throw=True``
+            raises a ``TypeError`` before anything runs (read ``Solution.status`` instead).
         checkpoint: rematerialise each saved block in reverse mode: a gradient then stores
             one state per save instead of every element's residuals. Static.
         dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps). Static.
@@ -178,10 +194,12 @@ def integrate(
     """
     q0, p0, h = prepare(H, q0, p0, method, h, args)
     _checks.check_counts(n_steps, save_every)
-    _checks.check_iterations(max_newton_iterations)
-    options = solver_options(method, max_newton_iterations, bool(krylov))
-    return _integrate(H, q0, p0, method, h, args, n_steps, save_every, options, checkpoint, bool(dense),
-                      bool(progress), bool(error_estimate))
+    options = solver_options(method, max_newton_iterations, krylov, solver)
+    sol = _integrate(H, q0, p0, method, h, args, n_steps, save_every, options, checkpoint, bool(dense),
+                     bool(progress), bool(error_estimate))
+    if throw:
+        throw_if_failed(sol.status)
+    return sol
 
 
 def solution(final, saved, kept, q0, p0, h, block_size):
@@ -199,7 +217,7 @@ def solution(final, saved, kept, q0, p0, h, block_size):
         p=jnp.concatenate([p0[None], ps]),
         status=final["status"],
         stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"],
-               "batch_newton_iterations": final["trips"]},
+               "batch_newton_iterations": final["trips"], "num_accepted_stalled": final["lenient"]},
         error_estimate=final["estimate"],
         dense=dense,
     )
@@ -214,21 +232,21 @@ def _integrate(H, q0, p0, method, h, args, n_steps, save_every, options, checkpo
     return solution(final, saved, kept, q0, p0, h, save_every)
 
 
-def amplification_matrix(H, q, p, *, method, h, args=None):
+def amplification_matrix(H, q, p, *, method, h, args=None, solver=None):
     """A = d z_1 / d z_0 of one element, by ``jax.jacfwd`` through the implicit solve [GBS, eq. (48)].
 
     For a quadratic H this is the amplification matrix of the two-level scheme
     ``z_{k+1} = A z_0``; in general it is the Jacobian of the one-step map. A failed solve
-    gives a matrix of NaN.
+    gives a matrix of NaN. ``solver``: ``SolverOptions``, as in ``integrate``.
 
     Returns:
         shape ``(2d, 2d)`` in the ordering ``z = (q, p)``.
     """
     q, p, h = prepare(H, q, p, method, h, args)
     d = q.shape[0]
+    options = solver_options(method, solver=solver)
 
     def one_step(z):
-        options = solver_options(method, DEFAULT_MAX_NEWTON_ITERATIONS, False)
         q1, p1, status = _step(H, z[:d], z[d:], method, h, args, options)
         return jnp.concatenate([q1, p1]), status
 

@@ -17,8 +17,9 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import _checks
-from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, solution
+from ._integrate import solution
 from ._march import bind_args, march, nan_if_failed, solver_options
+from ._solve import throw_if_failed
 from ._pytree import pytree_dataclass
 
 
@@ -40,6 +41,8 @@ class SweepResult:
             of the batch's iterations a member spent waiting for slower members; in a batch of
             64 or more, the last eighth of the members to converge iterate apart, gathered,
             at an eighth of the cost).
+        num_accepted_stalled: elements accepted other than at round-off
+            (``Solution.stats``).
         solution: a batched ``Solution`` when ``save_every`` was given, else None; its
             ``stats`` are the Newton counts above.
     """
@@ -54,6 +57,7 @@ class SweepResult:
     num_newton_iterations: jax.Array
     max_newton_iterations: jax.Array
     batch_newton_iterations: jax.Array
+    num_accepted_stalled: jax.Array = None
     solution: Any = None
 
 
@@ -112,7 +116,7 @@ def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, esti
         final_error=final_error,
         q=final["q"], p=final["p"], status=final["status"], error_estimate=final["estimate"],
         num_newton_iterations=final["total"], max_newton_iterations=final["most"],
-        batch_newton_iterations=final["trips"],
+        batch_newton_iterations=final["trips"], num_accepted_stalled=final["lenient"],
         solution=runs,
     )
 
@@ -136,8 +140,10 @@ def sweep(
     invariants=None,
     reference=None,
     save_every=None,
-    max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
-    krylov=False,
+    max_newton_iterations=None,
+    krylov=None,
+    solver=None,
+    throw=False,
     devices=None,
     checkpoint=False,
     progress=False,
@@ -152,7 +158,9 @@ def sweep(
         invariants: ``{name: I(q, p)}`` whose relative change is tracked (e.g. angular momentum).
         reference: ``(q_ref, p_ref)`` of shape ``(B, d)`` for ``final_error``.
         save_every: store a trajectory with this stride (``SweepResult.solution``); default none.
-        krylov: Newton-Krylov for systems of more than 256 unknowns (see ``integrate``). Static.
+        max_newton_iterations, krylov, solver: the implicit solve's options (see ``integrate``). Static.
+        throw: raise ``SolverError`` when a configuration's status is nonzero, naming the
+            configurations (outside ``jit`` only, as in ``integrate``).
         devices: shard the batch over these devices (e.g. ``jax.devices()``); results equal
             the unsharded run (up to how XLA compiles the per-device batch size). Several hosts: call ``jax.distributed.initialize()`` first and
             pass ``jax.devices()`` (all global devices).
@@ -167,14 +175,15 @@ def sweep(
     """
     configs = _checks.check_sweep(H, configs, n_steps, save_every, invariants, reference)
     invariants = dict(invariants or {})
-    _checks.check_iterations(max_newton_iterations)
     reference = None if reference is None else tuple(jnp.asarray(r) for r in reference)
     inputs = (configs, reference)
     if devices is not None:
         inputs = _shard(inputs, devices)
-    options = solver_options(configs.method, max_newton_iterations, bool(krylov))
+    options = solver_options(configs.method, max_newton_iterations, krylov, solver)
     result = _run(H, tuple(invariants.items()), n_steps, save_every, options, checkpoint, bool(progress),
                   bool(error_estimate), *inputs)
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
+    if throw:
+        throw_if_failed(result.status)
     return result
