@@ -186,8 +186,8 @@ class SolverOptions:
             competes with the constant guess (a continued polynomial can overshoot at large
             h omega).
         miss_orders: the orders of extrapolation of the predictor's misses it chooses from
-            (``_march.miss_correction``): the high one where the misses are smooth, the low one
-            where they are not.
+            (``_march.miss_correction``; one or more, the lowest first): the high one where the
+            misses are smooth, the low one where they are not.
         krylov_tolerance, krylov_restart, krylov_restarts: GMRES's relative residual (each
             update leaves this much of the error, so the updates reach the floor in two or
             three), its restart length and the number of restarts.
@@ -208,7 +208,7 @@ class SolverOptions:
     first_block: int = 4
     stragglers: int = 8
     refresh_share: int = 8
-    watch: int = 2
+    watch: int = 4
     min_damping: float = 1.0 / 64
     doubtful_start: float = 0.1
     miss_orders: tuple = (2, 6)
@@ -224,10 +224,12 @@ class SolverOptions:
         _check_count("watch", self.watch, 0)
         for name in ("theta_newton", "fixed_point_patience", "miss_orders"):
             value = getattr(self, name)
-            if not isinstance(value, tuple) or len(value) != 2:
-                raise ValueError(f"SolverOptions.{name} must be a tuple of two values, got {value!r}.")
-        for value in self.fixed_point_patience + self.miss_orders:
-            _check_count("fixed_point_patience / miss_orders", value, 1)
+            if not isinstance(value, tuple) or len(value) != 2 and name != "miss_orders" or not value:
+                raise ValueError(f"SolverOptions.{name} must be a tuple of two values (miss_orders: of one "
+                                 f"or more), got {value!r}.")
+        for name in ("fixed_point_patience", "miss_orders"):
+            for value in getattr(self, name):
+                _check_count(name, value, 1)
         for name in ("noise", "theta_fixed_point", "min_damping", "doubtful_start", "krylov_tolerance") + (
                 "theta_newton",):
             values = getattr(self, name) if name == "theta_newton" else (getattr(self, name),)
@@ -509,17 +511,18 @@ def _policy(problem, c, m, going, noisy, watchdog):
         # the watchdog: a full fresh step that raises the residual is taken, and so are the
         # fresh steps after it until the residual is below where it started; those that lower
         # the residual are free, ``watch`` that raise it are not: at the last the member goes
-        # back to halving its steps for the rest of the element
+        # back to where the first started, and halves its steps for the rest of the element
         tentative = backtrack & ~bad & (damping == 1.0) & (watch == 0)
         watching = going & (watch > 0)
         recovered = watching & ~bad & (r_size < c["ref_size"])
         onward = watching & ~recovered & ~bad & (lowered | (watch > 1))
-        backtrack = backtrack & ~tentative & ~onward
-        rejected = rejected & ~tentative & ~onward
-        failed = failed & ~onward
+        back = watching & ~recovered & ~onward  # to the reference, at the refresh (``_rewind``)
+        backtrack = backtrack & ~tentative & ~watching
+        rejected = (rejected & ~tentative & ~onward) | back
+        failed = failed & ~watching
         watch = jnp.where(tentative, solver.watch, jnp.where(recovered, 0, jnp.where(
-            watching & ~recovered & ~onward, -1, jnp.where(onward & ~lowered, watch - 1, watch))))
-        watched = tentative | onward  # each of these steps asks for a fresh matrix
+            back, BACK, jnp.where(onward & ~lowered, watch - 1, watch))))
+        watched = tentative | onward | back  # each of these steps asks for a fresh matrix
     else:
         tentative = watched = jnp.zeros_like(going)
     # a damped step is taken far from the root, where a matrix from an earlier iterate is no
@@ -660,21 +663,40 @@ def _served(c, served):
                 since=jnp.where(served, c["iterations"], c["since"]))
 
 
-def _refresh(problem, c, inverse):
+def _refresh(problem, c, inverse, reference):
     """A batch: fresh Newton matrices at the current iterates for the members that asked, at
     most ``capacity`` of them, gathered so that the work follows the askers, not the batch;
-    those beyond it keep asking."""
+    those beyond it keep asking. Returns ``(c, inverse, reference)`` (``_rewind``)."""
     B = c["Z"].shape[0]
     capacity = min(B, max(8, B // problem.solver.refresh_share))
 
-    def refreshed(Z, inverse, asked):
-        index, take, sub = _members(problem, asked, capacity)
-        inverse = inverse.at[index].set(jnp.linalg.inv(block_jacobians(sub.residual, take(Z))), mode="drop")
-        return inverse, jnp.zeros(B, bool).at[index].set(True, mode="drop")
+    def refreshed(c, inverse, reference):
+        c, reference = _rewind(c, reference)
+        index, take, sub = _members(problem, c["asked"], capacity)
+        inverse = inverse.at[index].set(jnp.linalg.inv(block_jacobians(sub.residual, take(c["Z"]))), mode="drop")
+        return _served(c, jnp.zeros(B, bool).at[index].set(True, mode="drop")), inverse, reference
 
-    unchanged = lambda Z, inverse, asked: (inverse, jnp.zeros_like(asked))
-    inverse, served = jax.lax.cond(jnp.any(c["asked"]), refreshed, unchanged, c["Z"], inverse, c["asked"])
-    return _served(c, served), inverse
+    return jax.lax.cond(jnp.any(c["asked"]), refreshed, lambda *s: s, c, inverse, reference)
+
+
+BACK, DONE_WATCHING = -2, -1  # ``watch``: back to the reference pending; no more watchdog this element
+
+
+def _reference(c):
+    """The watchdog's reference iterate and residual (``_rewind``), first the element's start."""
+    return _get(c, "Z"), _get(c, "r")
+
+
+def _rewind(c, reference):
+    """At a refresh, before the matrix is taken: members whose watchdog gave up go back to its reference with half a
+    step, the rest that are not watching take their iterate as the reference (a watchdog's
+    first step is a refresh's first, so the reference is where it started)."""
+    c = _unpack(c)
+    back, idle = c["watch"] == BACK, c["watch"] == 0
+    Z, r = _select(back, reference[0], c["Z"]), _select(back, reference[1], c["r"])
+    c = dict(c, Z=Z, r=r, r_size=jnp.where(back, c["ref_size"], c["r_size"]),
+             damping=jnp.where(back, 0.5, c["damping"]), watch=jnp.where(back, DONE_WATCHING, c["watch"]))
+    return _pack(c), (_select(idle, Z, reference[0]), _select(idle, r, reference[1]))
 
 
 def _newton(problem, c, inverse):
@@ -689,20 +711,22 @@ def _newton(problem, c, inverse):
     moving = lambda s: jnp.any(_live(problem, s[0]) & (_get(s[0], "newton") | _get(s[0], "asked")))
     if c["Z"].shape[0] > 1:
         def step(state):
-            c, inverse = _refresh(problem, *state)
-            return _block(problem, c, inverse, 1), inverse
+            c, inverse, reference = _refresh(problem, *state)
+            return _block(problem, c, inverse, 1), inverse, reference
 
-        return jax.lax.while_loop(moving, step, (c, inverse))
+        return jax.lax.while_loop(moving, step, (c, inverse, _reference(c)))[:2]
 
     def round(state):
-        c, inverse = state
-        fresh = lambda c, _: (_pack(_served(_unpack(c), jnp.ones(1, bool))),
-                              jnp.linalg.inv(block_jacobians(problem.residual, _unpack(c)["Z"])))
-        c, inverse = jax.lax.cond(_get(c, "asked")[0], fresh, lambda *s: s, c, inverse)
-        going = lambda c: jnp.any(_live(problem, c) & ~_get(c, "asked"))
-        return jax.lax.while_loop(going, lambda c: _block(problem, c, inverse, 1), c), inverse
+        def fresh(c, _, reference):
+            c, reference = _rewind(c, reference)
+            inverse = jnp.linalg.inv(block_jacobians(problem.residual, c["Z"]))
+            return _pack(_served(_unpack(c), jnp.ones(1, bool))), inverse, reference
 
-    return jax.lax.while_loop(moving, round, (c, inverse))
+        c, inverse, reference = jax.lax.cond(_get(state[0], "asked")[0], fresh, lambda *s: s, *state)
+        going = lambda c: jnp.any(_live(problem, c) & ~_get(c, "asked"))
+        return jax.lax.while_loop(going, lambda c: _block(problem, c, inverse, 1), c), inverse, reference
+
+    return jax.lax.while_loop(moving, round, (c, inverse, _reference(c)))[:2]
 
 
 def _newton_krylov(problem, c):
@@ -710,8 +734,13 @@ def _newton_krylov(problem, c):
     direction, by GMRES (``_Problem.newton_krylov``). There is no matrix to wait for: every
     member that asks is served at once."""
     serve = lambda c: _pack(_served(_unpack(c), _get(c, "asked")))
-    moving = lambda c: jnp.any(_live(problem, c) & (_get(c, "newton") | _get(c, "asked")))
-    return jax.lax.while_loop(moving, lambda c: _block(problem, serve(c), KRYLOV, 1), serve(c))
+    moving = lambda s: jnp.any(_live(problem, s[0]) & (_get(s[0], "newton") | _get(s[0], "asked")))
+
+    def step(state):
+        c, reference = _rewind(*state)
+        return _block(problem, serve(c), KRYLOV, 1), reference
+
+    return jax.lax.while_loop(moving, step, (serve(c), _reference(c)))[0]
 
 
 def _start(problem, Z_pred, Z_alt, skip):
