@@ -6,52 +6,58 @@ explicit batch axis B: a ``custom_vmap`` rule folds any ``vmap`` axes into it, s
 run pays for a Jacobian only in the iterations where some member asks for one (under a
 plain ``vmap`` a ``lax.cond`` becomes a ``select`` that runs both branches every time).
 
-Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
+Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element. The thresholds are
+the fields of ``SolverOptions`` (named in parentheses), each with its unit and reason.
 
 * The fixed-point phase: ``K = I``, the fixed-point iteration of ``Z = h Phi(Z)`` (every method
-  whose residual has Jacobian I at h = 0), in blocks of ``FIXED_POINT_BLOCK`` updates checked
-  once at the block's end; a system of more than ``SMALL`` unknowns starts each element with a
-  block of ``FIRST_BLOCK`` (it needs four to six updates, and a check costs several kernels).
-  Its loop carries no matrix, so a run that never needs Newton never pays for one. A member
-  leaves it when it contracts at a rate above 1/2 or takes too many iterations in one element
-  (the predictor's error and the rate together decide the cost).
-  A large batch iterates its stragglers, its last eighth to converge, gathered apart.
-  Partitioned methods on states of more than ``_march.SWEEP_DIMENSION`` degrees of freedom
-  hand this solver the residual of their Gauss-Seidel sweep (``_march.element_residual``),
-  whose fixed point contracts at the square of the plain one's rate.
+  whose residual has Jacobian I at h = 0), in blocks of ``fixed_point_block`` updates checked
+  once at the block's end; a system of more than ``small`` unknowns starts each element with a
+  block of ``first_block``. Its loop carries no matrix, so a run that never needs Newton never
+  pays for one. A member leaves it for Newton when it contracts at a rate above
+  ``theta_fixed_point``, or when its patience is used up (``fixed_point_patience``, at most
+  half the cap, so that Newton is always reached).
+  A large batch iterates its stragglers (``stragglers``) gathered apart.
+  Partitioned methods on states of more than ``sweep_dimension`` degrees of freedom hand this
+  solver the residual of their Gauss-Seidel sweep (``_march.element_residual``), whose fixed
+  point contracts at the square of the plain one's rate.
   A method whose residual's Jacobian at h = 0 is not I (dG(k >= 1)) has no fixed point and
   solves every element by Newton.
 * The Newton phase: ``K`` the inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and
   kept across elements (the simplified Newton method, as in Hairer and Wanner's Radau5), one
-  checked update at a time. A member refreshes its matrix when it contracts too slowly or an
-  update goes astray (the update is rejected). A Newton step that does not lower the residual
-  is halved if the matrix was taken at the step's start (``current``), else undone and the
-  matrix refreshed there (damped Newton far from the root, simplified Newton near it). A
-  system too large for a dense matrix (more than ``DENSE_LIMIT`` unknowns) has Newton only
-  with ``Options.krylov``: every update a fresh Newton direction, by GMRES on Jacobian-vector
-  products (Newton-Krylov; its cost follows the Hessian's sparsity, not n^3). A small system
-  that switched stays with Newton (its Newton update costs two to three fixed-point ones); a
-  large one, whose update costs a product with an n x n matrix or a Krylov solve, for
-  ``NEWTON_STRETCH`` elements, then tries the fixed point again (one hard element does not
-  cost it the run). Small systems solve a run's first element by Newton: the predictor has no
-  history yet.
+  checked update at a time. A member refreshes its matrix when it contracts slower than
+  ``theta_newton``, when it has iterated ``patience`` times with it in one element, or when an
+  update goes astray (the update is rejected). Far from the root (a first element, a
+  large h omega) the steps follow Newton with a fresh matrix: a full step that does not lower
+  the residual is taken anyway, and so are the fresh steps after it while the residual comes
+  back below where it started (the watchdog, ``watch``; plain Newton's first step can raise the
+  residual and still reach the root in a few more); if it does not, the member goes back there
+  and halves its steps (damped Newton, down to ``min_damping``), each taken damped step with a
+  fresh matrix. A system too large for a dense matrix (more than ``dense_limit`` unknowns)
+  has Newton only with ``krylov``: every update a fresh Newton direction, by GMRES on
+  Jacobian-vector products (Newton-Krylov; its cost follows the Hessian's sparsity, not n^3).
+  A small system that switched stays with Newton (its Newton update costs two to three
+  fixed-point ones); a large one, whose update costs a product with an n x n matrix or a
+  Krylov solve, for ``newton_stretch`` elements, then tries the fixed point again. Small
+  systems solve a run's first element by Newton: the predictor has no history yet.
 
 The loop's cost is mostly per check, not per update: the decisions, the sizes and the loop's
 trip are each a kernel that XLA's CPU runtime launches on its own. A block of two fixed-point
 updates costs little more than one; a rejected block is undone as a whole.
 
-Stopping rule: a member stops when the error left after its update, ``|dZ| theta / (1 - theta)``
-(theta the contraction rate: a block's last two updates' ratio, or in Newton's one update per
-check the largest ratio of the element), is below the round-off ``eps |Z|`` of the unknowns, or
-when its updates stop shrinking: at the round-off of the state whatever K (there also when
+Stopping rule (``_converged``, correctness; the policy above is ``_policy``, speed): a member
+stops when the error left after its update, ``|dZ| theta / (1 - theta)`` (theta the
+contraction rate: a block's last two updates' ratio, or in Newton's one update per check the
+largest ratio of the element), is below the round-off ``eps |Z|`` of the unknowns, or when its
+updates stop shrinking: at the round-off of the state (``noise``) whatever K (there also when
 they still shrink, by less than half, past the member's patience), below ``sqrt(eps)`` of the
-state only with a fresh Newton matrix (the floor of an ill-conditioned system). A growing
-update is never applied, and the residual at the accepted iterate must be below ``sqrt(eps)``
-of the state. An accepted iterate gets one more update from its residual, which is already
-known (a product, no residual). Iterating to the floor, not to a tolerance, and that last
-update leave no systematic iteration error in the states, so round-off grows like sqrt(n)
-(Brouwer's law), not like n. Sizes are root-mean-square norms over a member's unknowns (a
-sum of squares is one cheap reduction; NaN and inf propagate through it).
+state only with a fresh Newton matrix (the floor of an ill-conditioned system). The last two
+accept an element short of the round-off criterion; ``stats["num_accepted_stalled"]`` counts
+them. A growing update is never applied, and the residual at the accepted iterate must be
+below ``sqrt(eps)`` of the state. An accepted iterate gets one more update from its residual,
+which is already known (a product, no residual). Iterating to the floor, not to a tolerance,
+and that last update leave no systematic iteration error in the states, so round-off grows
+like sqrt(n) (Brouwer's law), not like n. Sizes are root-mean-square norms over a member's
+unknowns (a sum of squares is one cheap reduction; NaN and inf propagate through it).
 
 Derivatives come from the implicit function theorem (``implicit``), never from the iterations.
 """
@@ -529,15 +535,9 @@ def _policy(problem, c, m, going, noisy, watchdog):
     # guide: the next step has a fresh one (damped Newton, not damped simplified Newton)
     watched = watched | (going & ~backtrack & ~rejected & ~failed & (damping < 1.0) & current)
     large = m["large"]
-    theta = m["theta"]
-    slow = theta > jnp.where(newton, solver.theta_newton[large], solver.theta_fixed_point)
-    # at this rate the updates would reach round-off only after the patience is used up, when
-    # the member asks anyway: it asks now (the iterations it would need, from the update's size)
-    eps = jnp.finfo(theta.dtype).eps
-    needed = jnp.log(eps * m["z_size"] / m["step"]) / jnp.log(theta)
-    foreseen = (theta < 1.0) & (needed > m["left"])
+    slow = m["theta"] > jnp.where(newton, solver.theta_newton[large], solver.theta_fixed_point)
     unsure = m["small"] & ~bad & stale  # a small update but a large residual: K is off
-    asks = rejected | ((slow | foreseen | m["patience"]) & ~noisy) | unsure | watched
+    asks = rejected | ((slow | m["patience"]) & ~noisy) | unsure | watched
     return backtrack, rejected, failed, asks, watch, tentative
 
 
@@ -569,7 +569,7 @@ def _block(problem, c, inverse, size):
     left = jnp.where(newton, solver.patience, solver.fixed_point_patience_for(large)) - jnp.where(
         newton, iterations - c["since"], iterations)
     m = dict(step=step, before=before, rate=rate, theta=theta, z_size=z_size, r_size=r_size,
-             bad=~jnp.isfinite(step + r_size), patience=left <= 0, left=left, large=large,
+             bad=~jnp.isfinite(step + r_size), patience=left <= 0, large=large,
              stale=~(newton & fresh))  # a fixed-point K, or a Newton K from an earlier iterate
     done, accept_here, lenient, noisy, m["small"] = _converged(problem, c, m)
     done = moving & done

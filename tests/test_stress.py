@@ -124,21 +124,24 @@ def compare(name):
 
 @pytest.mark.parametrize("name", list(CASES))
 def test_hard_first_element_reaches_plain_newtons_root_within_a_small_multiple_of_its_iterations(name):
-    """Status 0 at the default cap (48), the root of plain Newton to within 1e4 eps of the
-    state (the two iterations stop at different round-off; a different root would differ by
-    O(h |z|), above 1e10 eps here), and at most 3 x plain Newton's iterations + 3."""
+    """Status 0 at the default cap (48), the root of plain Newton to within 100 eps of the
+    state (measured at most 7 eps: the two iterations stop at different round-off; a different
+    root would differ by O(h |z|), above 1e10 eps here), and at most 3 x plain Newton's
+    iterations + 3 (measured at most 2.2 x, ``bench_stress.py``)."""
     plain, ours, difference, status = compare(name)
     assert plain is not None, "plain Newton must converge on every case of the set"
     assert status == 0
-    assert difference <= 1e4, difference
+    assert difference <= 100, difference
     assert ours <= BOUND_FACTOR * plain + BOUND_SLACK, (ours, plain)
 
 
-def test_the_issue_element_failed_before_the_watchdog():
-    """The watchdog is what the issue's element needs: with ``watch=0`` (backtracking from the
-    first full step that raises the residual, the solver before issue 23) cG(1) + Lobatto 2
-    does not converge within the default cap, while plain Newton needs 4 iterations."""
-    H, q, p, method, h, _ = CASES["quartic high momentum, cG(1) + Lobatto 2"]
-    _, ours, status = solver_element(method, H, q, p, h, {"solver": gj.SolverOptions(watch=0)})
-    assert status == 1 and ours == 48
-    assert plain_newton(method, H, q, p, h)[1] == 4
+@pytest.mark.parametrize("name", [name for name in CASES if name.startswith("quartic high momentum, ") and
+                                  name.split(", ")[1] in ("cG(1) + Lobatto 2", "cG(2) + Gauss 2", "dG(1) + Gauss 2")])
+def test_the_issue_elements_need_the_watchdog_for_the_bound(name):
+    """Issue 23's elements: with ``watch=0`` (halving from the first full step that raises the
+    residual) the solver exceeds the bound of 3 x plain Newton's 4 iterations + 3 (measured
+    26 to 32 iterations, ``bench_stress.py``); the watchdog keeps them within it."""
+    H, q, p, method, h, _ = CASES[name]
+    _, without, status = solver_element(method, H, q, p, h, {"solver": gj.SolverOptions(watch=0)})
+    _, plain = plain_newton(method, H, q, p, h)
+    assert without > BOUND_FACTOR * plain + BOUND_SLACK
