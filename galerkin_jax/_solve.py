@@ -29,10 +29,10 @@ the fields of ``SolverOptions`` (named in parentheses), each with its unit and r
   update goes astray (the update is rejected). Far from the root (a first element, a
   large h omega) the steps follow Newton with a fresh matrix: a full step that does not lower
   the residual is taken anyway, and so are the fresh steps after it while the residual comes
-  back below where it started (the watchdog, ``watch``; plain Newton's first step can raise the
-  residual and still reach the root in a few more); if it does not, the member goes back there
-  and halves its steps (damped Newton, down to ``min_damping``), each taken damped step with a
-  fresh matrix. A system too large for a dense matrix (more than ``dense_limit`` unknowns)
+  back below where it started (the watchdog, ``watch``, in an element whose predictor is the
+  constant guess, a run's first: plain Newton's first step can raise the residual and still
+  reach the root in a few more); if it does not, and in the other elements, the member goes back there and halves its steps (damped Newton, down to
+  ``min_damping``), each taken damped step with a fresh matrix. A system too large for a dense matrix (more than ``dense_limit`` unknowns)
   has Newton only with ``krylov``: every update a fresh Newton direction, by GMRES on
   Jacobian-vector products (Newton-Krylov; its cost follows the Hessian's sparsity, not n^3).
   A small system that switched stays with Newton (its Newton update costs two to three
@@ -180,8 +180,9 @@ class SolverOptions:
             ``1 / stragglers`` apart, gathered, so that it does not pay for its slowest members.
         refresh_share: a batch refreshes at most ``max(8, B // refresh_share)`` matrices per
             iteration (gathered, so the work follows the members that ask).
-        watch (iterations): a full Newton step with a fresh matrix that raises the residual is
-            taken anyway, and so are the fresh steps after it until the residual is below where
+        watch (iterations): in an element whose predictor is the constant guess (a run's
+            first, ``step``), a full Newton step with a fresh matrix that raises
+            the residual is taken anyway, and so are the fresh steps after it until the residual is below where
             it started, of which at most ``watch`` may raise it again; then the steps are halved
             for the rest of the element (the watchdog: far from the root, plain Newton's first
             step can raise the residual and still lead to the root in a few more). 0: halving
@@ -773,13 +774,17 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     krylov = matrix.inverse is None and (options.krylov or not options.fixed_point)
     problem = _Problem(fn, params, scale, solver, matrix.inverse is not None or krylov)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
+    # the watchdog watches an element whose predictor is the constant guess (a run's first,
+    # ``step``): elsewhere the predictor has the previous elements' history
+    constant = jnp.all((Z_pred == Z_alt).reshape(B, -1), axis=1)
+    watch = jnp.where(constant, 0, DONE_WATCHING).astype(jnp.int32)
     nan, false = jnp.full(B, jnp.nan, dtype), jnp.zeros(B, bool)
     newton = matrix.newton > 0
     asked = newton & matrix.pending & ok & ~skip
     zero = jnp.zeros(B, jnp.int32)
     c = dict(Z=Z, r=r, newton=newton, fresh=newton if krylov else false, current=newton if krylov else false,
              asked=asked, damping=jnp.ones(B, dtype), step=nan, rate=nan, r_size=r_size, ref_size=nan,
-             active=ok & ~skip, lenient=false, iterations=zero, since=zero, watch=zero,
+             active=ok & ~skip, lenient=false, iterations=zero, since=zero, watch=watch,
              status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
     if B > 1:
         c["trips"] = jnp.int32(0)  # the batch's updates; a run alone's are its iterations

@@ -82,11 +82,10 @@ def test_discrete_gradient_on_the_quartic_force_stays_far_from_the_cap():
     """The quartic force of [GBS, Fig. 4.6] at h = 0.01 (h omega up to ~1) with the discrete
     gradient, 10^4 steps: some elements start far from their root and need damped Newton.
     Halving steps with a matrix from an earlier iterate took one element to 48 iterations (the
-    cap); with a matrix refreshed where the full step failed and the watchdog
-    (``SolverOptions.watch``), measured max 30, mean 7.4. Bounds: three quarters of the cap,
-    a tenth above the mean."""
+    cap); with a matrix refreshed where the full step failed, measured max 20, mean 8.5 (17
+    elements accepted at the stall floor, ``num_accepted_stalled``)."""
     H, _, q0, p0 = helpers.quartic()
     sol = gj.integrate(H, q0, p0, method=gj.DiscreteGradient(), h=0.01, n_steps=10_000, save_every=10_000)
     assert int(sol.status) == 0
-    assert int(sol.stats["max_newton_iterations"]) <= 36
-    assert float(sol.stats["num_newton_iterations"]) / 10_000 <= 8.2
+    assert int(sol.stats["max_newton_iterations"]) <= 32
+    assert float(sol.stats["num_newton_iterations"]) / 10_000 <= 9.5
