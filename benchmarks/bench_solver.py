@@ -11,12 +11,11 @@ and the number of kernels in the body of every while loop of the compiled progra
 its HLO: the fixed-point block, the Newton loops and the element. The chain's rows run
 twice: with the Gauss-Seidel sweep of partitioned methods (the library's default for states
 of more than 8 degrees of freedom) and with the plain fixed point ``Z <- Z - R(Z)`` (the
-sweep's threshold raised for that row), an A/B in one run, and the contraction rate of either
-iteration at an element's root. Every row also counts the calls of H per element, by a callback
+sweep's threshold, ``SolverOptions.sweep_dimension``, raised for that row), an A/B in one
+run, and the contraction rate of either iteration at an element's root. Every row also counts the calls of H per element, by a callback
 inside H (``h_calls``). Writes results/solver.json.
 """
 
-import contextlib
 import pathlib
 import re
 import sys
@@ -30,7 +29,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import galerkin_jax as gj  # noqa: E402
 from _common import best_time, compiled, write  # noqa: E402
-from galerkin_jax import _integrate, _march, scenes  # noqa: E402
+from galerkin_jax import _march, scenes  # noqa: E402
 
 NOT_KERNELS = ("get-tuple-element", "constant", "bitcast", "parameter", "tuple")
 
@@ -75,7 +74,7 @@ CASES = {  # name: (H, q0, p0, method, h, n_steps, members, options)
 }
 
 
-def measure(name, scene, method, h, n_steps, members, options):
+def measure(name, scene, method, h, n_steps, members, options, solver=None):
     if scene is None:
         H, q0, p0 = stiff_chain()
     else:
@@ -85,7 +84,8 @@ def measure(name, scene, method, h, n_steps, members, options):
 
     def runner(H, **extra):
         def run(q, p):
-            sol = gj.integrate(H, q, p, method=method, h=h, n_steps=n_steps, save_every=n_steps, **options, **extra)
+            sol = gj.integrate(H, q, p, method=method, h=h, n_steps=n_steps, save_every=n_steps, solver=solver,
+                               **options, **extra)
             return sol.q[-1], sol.p[-1], sol.status, sol.stats
 
         return jax.vmap(run) if members > 1 else run
@@ -127,32 +127,24 @@ def h_calls(runner, H, args):
     return len(calls)
 
 
-def contraction(scene, method, h, n_steps=300):
+def contraction(scene, method, h, n_steps=300, solver=None):
     """The fixed-point iteration's asymptotic rate, the spectral radius of ``I - dR/dZ`` at an
     element's root after ``n_steps`` elements, for the residual the solver iterates (the
-    Gauss-Seidel sweep's, or the plain one's under ``plain_fixed_point``): the factor by which
+    Gauss-Seidel sweep's, or the plain one's with ``PLAIN_FIXED_POINT``): the factor by which
     each update shrinks once the predictor's error is spread over every mode."""
-    sol = gj.integrate(scene.H, scene.q0, scene.p0, method=method, h=h, n_steps=n_steps, save_every=n_steps)
+    sol = gj.integrate(scene.H, scene.q0, scene.p0, method=method, h=h, n_steps=n_steps, save_every=n_steps,
+                       solver=solver)
     q, p = sol.q[-1], sol.p[-1]
-    options = _march.solver_options(method, _integrate.DEFAULT_MAX_NEWTON_ITERATIONS, False)
+    options = _march.solver_options(method, solver=solver)
     *_, Z, _, status = _march.solve_element(method, scene.H, q, p, h, None, options)
-    fn, params = _march.element_residual(scene.H), (method, q, p, h, None)
+    fn, params = _march.element_residual(scene.H, options.solver.sweep_dimension), (method, q, p, h, None)
     assert int(status) == 0
     J = jax.jacfwd(lambda z: fn(z.reshape(Z.shape), params).reshape(-1))(Z.reshape(-1))
     return float(np.max(np.abs(np.linalg.eigvals(np.eye(J.shape[0]) - np.asarray(J)))))
 
 
-@contextlib.contextmanager
-def plain_fixed_point():
-    """The Gauss-Seidel sweep off: no system is above its size threshold while this lasts (the
-    caches cleared on both sides, so that no program traced with the other threshold is reused)."""
-    saved, _march.SWEEP_DIMENSION = _march.SWEEP_DIMENSION, 2**62
-    jax.clear_caches()
-    try:
-        yield
-    finally:
-        _march.SWEEP_DIMENSION = saved
-        jax.clear_caches()
+# the Gauss-Seidel sweep off: no state is above its size threshold
+PLAIN_FIXED_POINT = gj.SolverOptions(sweep_dimension=2**62)
 
 
 def main():
@@ -161,9 +153,9 @@ def main():
         rows[name] = measure(name, *case)
         if name.startswith("FPUT"):
             rows[name]["contraction"] = contraction(*case[:3])
-            with plain_fixed_point():
-                plain = rows[name + ", plain fixed point"] = measure(name + ", plain fixed point", *case)
-                plain["contraction"] = contraction(*case[:3])
+            plain = rows[name + ", plain fixed point"] = measure(name + ", plain fixed point", *case,
+                                                                 solver=PLAIN_FIXED_POINT)
+            plain["contraction"] = contraction(*case[:3], solver=PLAIN_FIXED_POINT)
             print(f"{'':58} contraction rate: sweep {rows[name]['contraction']:.2e}, plain {plain['contraction']:.2e}",
                   flush=True)
     write("solver", {"rows": rows})

@@ -18,7 +18,12 @@ from ._integrate import (
     step as step,
 )
 from ._midpoint import DiscreteGradient as DiscreteGradient, ModifiedMidpoint as ModifiedMidpoint
-from ._solve import Status as Status, status_message as status_message
+from ._solve import (
+    SolverError as SolverError,
+    SolverOptions as SolverOptions,
+    Status as Status,
+    status_message as status_message,
+)
 from ._accuracy import suggest_step_size as suggest_step_size
 from ._checks import Float32Warning as Float32Warning
 from ._configs import Configs as Configs, grid as grid, pad_rule as pad_rule, stack_methods as stack_methods
@@ -53,6 +58,8 @@ __all__ = [
     "PIDController",
     "QuadratureRule",
     "Solution",
+    "SolverError",
+    "SolverOptions",
     "Status",
     "SweepResult",
     "TimeTransform",

@@ -110,14 +110,15 @@ def _event_update(event, g, c, step, accept, clock):
     return fields, (hit, t_ev, at)
 
 
-def _initial_carry(method, z0, t0, h0, guess, max_steps, m, ts, dense, event, g, observe, acc0, estimate):
+def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, event, g, observe, acc0, estimate):
     dtype = z0.dtype
     q0, p0 = jnp.split(z0, 2)
     c = dict(z=z0, comp=jnp.zeros_like(z0), t=t0, z_prev=z0, Z_prev=guess, hs=jnp.zeros((max_steps,), dtype),
-             h=jnp.asarray(h0, dtype), matrix=initial_matrix(guess, method.fixed_point),
+             h=jnp.asarray(h0, dtype), matrix=initial_matrix(guess, options),
              status=input_status(q0, p0, h0), h_min=jnp.full((), jnp.inf, dtype), h_max=jnp.zeros((), dtype),
              estimate=jnp.zeros((), dtype),
-             **{k: jnp.zeros((), jnp.int32) for k in ("steps", "rejected", "attempts", "total", "most", "trips")})
+             **{k: jnp.zeros((), jnp.int32) for k in ("steps", "rejected", "attempts", "total", "most", "trips",
+                                                      "lenient")})
     if observe is not None:
         c["acc"] = acc0
     if ts is not None:
@@ -155,7 +156,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         ``h_min``, ``h_max``, ``estimate``, and ``saved``, the dense buffers and the events
         where asked.
     """
-    fn = element_residual(H)
+    fn = element_residual(H, options.solver.sweep_dimension)
     H_bound = bind_args(H, args)
     view = lambda z: _output.user_view(z, clock)
     z0 = jnp.concatenate([q0, p0])
@@ -172,7 +173,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     else:
         rule, memory = _constant_rule, {}
     g = None if event is None else (lambda t, z: event.g(t, *view(z)))
-    c = _initial_carry(method, z0, t0, h0, guess, max_steps, m, ts, dense, event, g, observe, acc0, estimate)
+    c = _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, event, g, observe, acc0, estimate)
     c.update(memory)
     if s is not None:
         s0 = s(*view(z0))
@@ -190,7 +191,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         predicted = jnp.where(c["steps"] > 0, continued, constant)
         last = t + c["h"] * (1 + 4 * jnp.finfo(dtype).eps) >= t1
         h = jnp.where(last & (clock is None), t1 - t, c["h"])
-        Z, matrix, iterations, status, trips = solve(
+        Z, matrix, iterations, status, trips, lenient = solve(
             fn, (method, q, p, h, args), predicted, constant, c["matrix"], state_scale(z), ~active, options)
         z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
         W = method.polynomial(H_bound, q, p, Z, h)
@@ -239,7 +240,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             done=c["done"] | fail | (active & finished) | out_of_steps,
             steps=c["steps"] + accept, rejected=c["rejected"] + (active & verdict["rejected"]), attempts=attempts,
             total=c["total"] + iterations * active, most=jnp.maximum(c["most"], iterations * active),
-            trips=c["trips"] + trips * active,
+            trips=c["trips"] + trips * active, lenient=c["lenient"] + (accept & (lenient > 0)),
             h_min=jnp.where(accept, jnp.minimum(c["h_min"], h), c["h_min"]),
             h_max=jnp.where(accept, jnp.maximum(c["h_max"], h), c["h_max"]),
             estimate=jnp.where(accept, jnp.fmax(c["estimate"], local), c["estimate"]),

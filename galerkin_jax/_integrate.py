@@ -8,12 +8,13 @@ import jax.numpy as jnp
 
 from . import _adaptive, _checks, _output, _replay, _shape, _span
 from ._controllers import Events
-from ._solve import Status
+
 from ._march import bind_args, input_status, march, nan_if_failed, solve_element, solver_options
 from ._output import DenseOutput
 from ._pytree import pytree_dataclass
+from ._solve import SolverOptions, Status, throw_if_failed
 
-DEFAULT_MAX_NEWTON_ITERATIONS = 48  # the fixed point may take 24 of them before it switches to Newton
+DEFAULT_MAX_NEWTON_ITERATIONS = SolverOptions.max_iterations
 
 
 DEFAULT_MAX_STEPS = 4096  # attempts of a run whose steps a controller chooses (diffrax's default)
@@ -34,10 +35,12 @@ class Solution:
             converged solves, not accurate steps: read ``error_estimate`` for that.
         stats: ``num_newton_iterations`` (total), ``max_newton_iterations`` (largest count in
             one element), ``batch_newton_iterations`` (the iterations the batch ran: under
-            ``vmap`` each element waits for the batch's slowest member), ``num_steps``
-            (accepted elements), ``num_rejected_steps``, ``min_step`` and ``max_step`` (the
-            smallest and largest accepted h; of a time-transformed run, in tau; of fixed steps
-            h, where the last element to t1 may be shorter).
+            ``vmap`` each element waits for the batch's slowest member), ``num_accepted_stalled``
+            (elements accepted other than at round-off: their updates stopped shrinking with the
+            residual below sqrt(eps) of the state, see ``Status``), ``num_steps`` (accepted
+            elements), ``num_rejected_steps``, ``min_step`` and ``max_step`` (the smallest and
+            largest accepted h; of a time-transformed run, in tau; of fixed steps h, where the
+            last element to t1 may be shorter).
         error_estimate: the largest estimated local (one-element) error of the run, max-norm
             over (q, p), shape (); NaN for a failed run and for ``LagrangianVI``.
         dense: ``DenseOutput`` with ``integrate(..., dense=True)``, else None.
@@ -100,11 +103,11 @@ def prepare(H, q0, p0, method, h, args):
 
 
 @_shape.on_step
-def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS, krylov=False):
+def step(H, q, p, *, method, h, args=None, max_newton_iterations=None, krylov=None, solver=None, throw=False,
+         return_status=False):
     """One time element: ``(q, p) -> (q1, p1)``.
 
-    A failed solve returns NaN states (never a plausible one); ``integrate(..., n_steps=1)``
-    gives its status and message.
+    A failed solve returns NaN states (never a plausible one).
 
     Args:
         H: ``H(q, p)`` or ``H(q, p, args)`` returning a scalar (``L(q, qdot)`` for LagrangianVI).
@@ -112,14 +115,18 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=DEFAULT_MAX_NEW
             structure; H receives them so.
         method: e.g. ``CG(k, rule)``, ``DG(k, rule)``.
         h: step size, scalar > 0.
-        max_newton_iterations, krylov: as in ``integrate``.
+        max_newton_iterations, krylov, solver, throw: as in ``integrate``.
+        return_status: also return the int32 ``Status`` code (works under jit).
     Returns:
-        ``(q1, p1)``, in the shape (structure) of q and p.
+        ``(q1, p1)``, in the shape (structure) of q and p; ``(q1, p1, status)`` with ``return_status``.
     """
     q, p, h = prepare(H, q, p, method, h, args)
-    _checks.check_iterations(max_newton_iterations)
-    q1, p1, status = _step(H, q, p, method, h, args, solver_options(method, max_newton_iterations, bool(krylov)))
-    return nan_if_failed(q1, status), nan_if_failed(p1, status)
+    options = solver_options(method, max_newton_iterations, krylov, solver)
+    q1, p1, status = _step(H, q, p, method, h, args, options)
+    if throw:
+        throw_if_failed(status)
+    q1, p1 = nan_if_failed(q1, status), nan_if_failed(p1, status)
+    return (q1, p1, status) if return_status else (q1, p1)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
@@ -145,8 +152,10 @@ def integrate(
     events=None,
     args=None,
     save_every=1,
-    max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
-    krylov=False,
+    max_newton_iterations=None,
+    krylov=None,
+    solver=None,
+    throw=False,
     checkpoint=False,
     dense=False,
     progress=False,
@@ -179,14 +188,21 @@ def integrate(
         events: an ``Event``: sign changes of g(t, q, p), located on the element polynomials.
         args: pytree passed to ``H`` as third argument; may be traced.
         save_every: store every ``save_every``-th state of a fixed-step run of ``n_steps``. Static.
-        max_newton_iterations: iteration cap per element (the fixed-point iteration counts in
+        max_newton_iterations: iteration cap per element, a shorthand for
+            ``SolverOptions.max_iterations`` (default 48; the fixed-point iteration counts in
             blocks of two, an element of more than 32 unknowns starting with four, so a cap is
             rounded up to a block's end there). Static.
-        krylov: solve by Newton-Krylov (GMRES on Hessian-vector products) where the fixed-point
-            iteration is too slow in a system of more than 256 unknowns per element (k * 2d for
-            cG(k), (k + 1) * 2d for dG(k)), which without it has the fixed point only: stiff
-            large systems, h omega >~ 1, need it. dG(k >= 1) has no fixed point and always uses
-            it. Static.
+        krylov: a shorthand for ``SolverOptions.krylov`` (default False): solve by
+            Newton-Krylov (GMRES on Hessian-vector products) where the fixed-point iteration is
+            too slow in a system of more than 256 unknowns per element (k * 2d for cG(k),
+            (k + 1) * 2d for dG(k)), which without it has the fixed point only: stiff large
+            systems, h omega >~ 1, need it. dG(k >= 1) has no fixed point and always uses it.
+            Static.
+        solver: ``SolverOptions``, the implicit solve's options (default ``SolverOptions()``);
+            the two shorthands above replace their fields. Static.
+        throw: raise ``SolverError`` with the status's message when the status is nonzero.
+            Only outside ``jit``/``vmap``/``grad``: there the status is traced, and ``throw=True``
+            raises a ``TypeError`` before anything runs (read ``Solution.status`` instead).
         checkpoint: rematerialise each saved block in reverse mode: a gradient then stores
             one state per save instead of every element's residuals. Static.
         dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps), or
@@ -204,11 +220,22 @@ def integrate(
     q0, p0, h = prepare(H, q0, p0, method, h, args)
     _span.check_span(n_steps, t0, t1, controller)
     _span.check_controller(controller, method)
-    _checks.check_iterations(max_newton_iterations)
-    options = solver_options(method, max_newton_iterations, bool(krylov))
+    options = solver_options(method, max_newton_iterations, krylov, solver)
     t0 = jnp.asarray(t0, q0.dtype)
     estimate = _span.check_estimate(error_estimate)
-    statics = (options, checkpoint, bool(dense), bool(progress), estimate)
+    sol = _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps, save_at, events, save_every,
+                    options, (checkpoint, bool(dense), bool(progress), estimate))
+    if throw:
+        throw_if_failed(sol.status)
+    return sol
+
+
+def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps, save_at, events, save_every,
+              options, flags):
+    """The compiled run that ``integrate``'s arguments ask for: fixed steps (a scan), or a loop
+    whose steps are not known in advance (``_integrate_adaptive``)."""
+    statics = (options, *flags)
+    checkpoint, dense, progress, estimate = flags
     if n_steps is not None and save_at is None and events is None:
         _checks.check_counts(n_steps, save_every)
         return _integrate(H, q0, p0, method, h, args, t0, None, None, n_steps, save_every, *statics)
@@ -218,7 +245,7 @@ def integrate(
     t1 = jnp.asarray(t1, q0.dtype)
     ts = _span.check_save_at(save_at, t0, t1, q0.dtype)
     _span.check_event(events, q0, p0, t0)
-    concrete = not any(isinstance(x, jax.core.Tracer) for x in (h, t0, t1))
+    concrete = _span.concrete(h, t0, t1)
     if max_steps is not None:
         _span.check_max_steps(max_steps)
     if controller is None and ts is None and events is None:
@@ -233,7 +260,7 @@ def integrate(
     if max_steps is None:
         max_steps = _span.fixed_step_count(t0, t1, h)[0] if controller is None and concrete else DEFAULT_MAX_STEPS
     return _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options,
-                               bool(dense), estimate)
+                               dense, estimate)
 
 
 def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
@@ -259,8 +286,9 @@ def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
         p=jnp.concatenate([p0[None], ps]),
         status=status,
         stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"],
-               "batch_newton_iterations": final["trips"], "num_steps": final["steps"],
-               "num_rejected_steps": jnp.zeros_like(final["steps"]), "min_step": h, "max_step": h},
+               "batch_newton_iterations": final["trips"], "num_accepted_stalled": final["lenient"],
+               "num_steps": final["steps"], "num_rejected_steps": jnp.zeros_like(final["steps"]),
+               "min_step": h, "max_step": h},
         error_estimate=final["estimate"],
         dense=dense,
     )
@@ -310,19 +338,19 @@ def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, even
         eq, ep = view(c["ev_z"])
         events = Events(t=c["ev_t"], q=eq, p=ep, count=c["ev_count"])
     stats = {"num_newton_iterations": c["total"], "max_newton_iterations": c["most"],
-             "batch_newton_iterations": c["trips"], "num_steps": c["steps"], "num_rejected_steps": c["rejected"],
-             "min_step": c["h_min"], "max_step": c["h_max"]}
+             "batch_newton_iterations": c["trips"], "num_accepted_stalled": c["lenient"], "num_steps": c["steps"],
+             "num_rejected_steps": c["rejected"], "min_step": c["h_min"], "max_step": c["h_max"]}
     return Solution(t=t, q=q, p=p, status=status, stats=stats, error_estimate=nan_if_failed(c["estimate"], status),
                     dense=dense_output, events=events)
 
 
 @_shape.on_amplification
-def amplification_matrix(H, q, p, *, method, h, args=None):
+def amplification_matrix(H, q, p, *, method, h, args=None, solver=None):
     """A = d z_1 / d z_0 of one element, by ``jax.jacfwd`` through the implicit solve [GBS, eq. (48)].
 
     For a quadratic H this is the amplification matrix of the two-level scheme
     ``z_{k+1} = A z_0``; in general it is the Jacobian of the one-step map. A failed solve
-    gives a matrix of NaN.
+    gives a matrix of NaN. ``solver``: ``SolverOptions``, as in ``integrate``.
 
     Returns:
         shape ``(2d, 2d)`` in the ordering ``z = (q, p)``. A state of another shape or a
@@ -331,9 +359,9 @@ def amplification_matrix(H, q, p, *, method, h, args=None):
     """
     q, p, h = prepare(H, q, p, method, h, args)
     d = q.shape[0]
+    options = solver_options(method, solver=solver)
 
     def one_step(z):
-        options = solver_options(method, DEFAULT_MAX_NEWTON_ITERATIONS, False)
         q1, p1, status = _step(H, z[:d], z[d:], method, h, args, options)
         return jnp.concatenate([q1, p1]), status
 

@@ -16,12 +16,7 @@ import jax.numpy as jnp
 
 from . import _progress
 from ._controllers import embedded_error
-from ._solve import Options, Status, initial_matrix, solve
-
-
-# the Gauss-Seidel sweep for states of more degrees of freedom d than this (``element_residual``):
-# below it the loop's kernels cost more than the sweep's better rate saves (docs/solver.md)
-SWEEP_DIMENSION = 8
+from ._solve import Options, SolverOptions, Status, initial_matrix, solve, solver_from
 
 
 def bind_args(H, args):
@@ -39,12 +34,12 @@ def nan_if_failed(x, status):
     return jnp.where(failed, jnp.nan, x)
 
 
-def element_residual(H):
+def element_residual(H, sweep_dimension=SolverOptions.sweep_dimension):
     """``(Z, params) -> R``, the element equations with everything they depend on in ``params``.
 
     A partitioned method (unknowns q | p along its ``partition_axis``, and a ``residual(...,
-    part=)`` of either half) with a fixed point, on a state of more than ``SWEEP_DIMENSION``
-    degrees of freedom, is solved through the residual of its Gauss-Seidel sweep,
+    part=)`` of either half) with a fixed point, on a state of more than ``sweep_dimension``
+    degrees of freedom (``SolverOptions.sweep_dimension``), is solved through the residual of its Gauss-Seidel sweep,
     ``R~ = Z - G(Z)``: G first updates the p half from R_p(Z), then the q half from R_q at
     that update. R~ has R's roots, and its fixed-point iteration ``Z <- G(Z)`` contracts at
     about the square of the rate of ``Z <- Z - R(Z)`` (for separable H, T(p) + V(q), exactly
@@ -56,7 +51,7 @@ def element_residual(H):
         method, q0, p0, h, args = params
         H_bound = bind_args(H, args)
         axis = getattr(method, "partition_axis", None)
-        if axis is None or not method.fixed_point or q0.shape[0] <= SWEEP_DIMENSION:
+        if axis is None or not method.fixed_point or q0.shape[0] <= sweep_dimension:
             return method.residual(H_bound, q0, p0, Z, h)
         r_p = method.residual(H_bound, q0, p0, Z, h, part="p")
         Z_q, Z_p = jnp.split(Z, 2, axis=axis)
@@ -72,19 +67,20 @@ def state_scale(z):
     return jnp.max(jnp.abs(z))
 
 
-def solver_options(method, max_iterations, krylov):
-    """The root finder's ``Options`` (a method without a fixed point, dG(k >= 1), has Newton at
-    every size: ``Options.fixed_point``)."""
-    return Options(max_iterations, krylov, method.fixed_point)
+def solver_options(method, max_iterations=None, krylov=None, solver=None):
+    """The root finder's ``Options``: the ``SolverOptions`` of ``solver`` and its shorthands
+    (``_solve.solver_from``), and whether the method has a fixed point (a method without one,
+    dG(k >= 1), has Newton at every size: ``Options.fixed_point``)."""
+    return Options(solver_from(solver, max_iterations, krylov), method.fixed_point)
 
 
 def solve_element(method, H, q, p, h, args, options):
     """One element from the constant predictor, without history: ``(q1, p1, Z, iterations, status)``."""
-    fn, params = element_residual(H), (method, q, p, h, args)
+    fn, params = element_residual(H, options.solver.sweep_dimension), (method, q, p, h, args)
     guess = method.initial_guess(q, p)
-    matrix = initial_matrix(guess, method.fixed_point)
+    matrix = initial_matrix(guess, options)
     scale = state_scale(jnp.concatenate([q, p]))
-    Z, _, iterations, status, _ = solve(fn, params, guess, guess, matrix, scale, jnp.asarray(False), options)
+    Z, _, iterations, status, _, _ = solve(fn, params, guess, guess, matrix, scale, jnp.asarray(False), options)
     dq, dp = method.increment(bind_args(H, args), q, p, Z, h)
     return q + dq, p + dp, Z, iterations, status
 
@@ -94,12 +90,6 @@ def compensated_add(x, dx, c):
     y = dx - c
     s = x + y
     return s, (s - x) - y
-
-
-# the orders of extrapolation of the continuation's misses the predictor chooses from
-# (``miss_correction``): 6 where the misses are smooth, 2 (linear) where they are not (the
-# discrete gradient's quartic scene); docs/solver.md gives the measurements
-MISS_ORDERS = (2, 6)
 
 
 def predictor(method, q, p, previous, correction):
@@ -116,21 +106,21 @@ def _extrapolated(misses, m):
     return sum((-1.0) ** j * math.comb(m, j + 1) * misses[j] for j in range(m))
 
 
-def miss_correction(misses, miss, n):
+def miss_correction(misses, miss, n, orders=SolverOptions.miss_orders):
     """``(misses, correction)``: the history with element n's ``miss`` of its continued
     polynomial first, and the next element's correction of its continuation. The miss varies
     smoothly from element to element, so the correction extrapolates it from the last misses,
-    by the one of the ``MISS_ORDERS`` that would have come closer to this element's miss. For a
+    by the one of the ``orders`` (``SolverOptions.miss_orders``) that would have come closer to this element's miss. For a
     mode of frequency omega, extrapolation of order m leaves |2 sin(h omega / 2)|^m of the
     miss, less the higher m while h omega is small; where the misses are not smooth in h
     (h omega ~ 1, a sharp turn of a nonlinear orbit) the low order does better. Element 0 has
     no real miss (nothing was continued), so an order competes once its test is made of real
     ones; before any does, the lowest order, and before that the last miss or nothing."""
     latest = jnp.concatenate([miss[None], misses[:-1]])  # shifted: cheaper than a ring written in place
-    backtests = jnp.stack([miss - _extrapolated(misses, m) for m in MISS_ORDERS])
-    errors = jnp.sum(backtests.reshape(len(MISS_ORDERS), -1) ** 2, axis=1)
-    best = jnp.argmin(jnp.where(n > jnp.asarray(MISS_ORDERS), errors, jnp.inf))  # the first, while none competes
-    correction = sum(jnp.where(best == i, _extrapolated(latest, m), 0.0) for i, m in enumerate(MISS_ORDERS))
+    backtests = jnp.stack([miss - _extrapolated(misses, m) for m in orders])
+    errors = jnp.sum(backtests.reshape(len(orders), -1) ** 2, axis=1)
+    best = jnp.argmin(jnp.where(n > jnp.asarray(orders), errors, jnp.inf))  # the first, while none competes
+    correction = sum(jnp.where(best == i, _extrapolated(latest, m), 0.0) for i, m in enumerate(orders))
     return latest, jnp.where(n >= 2, correction, jnp.where(n == 1, miss, 0.0))
 
 
@@ -169,7 +159,7 @@ def peak_estimate(method, H_bound, peak):
 
 # the run's counters, carried as one int32 array (one fused kernel per element, not four);
 # the count of elements done stays apart: it depends on nothing a vmap maps over
-COUNTERS = ("status", "total", "most", "trips")
+COUNTERS = ("status", "total", "most", "trips", "lenient")
 _AT = {name: i for i, name in enumerate(COUNTERS)}
 
 
@@ -192,11 +182,13 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     Returns:
         ``(final, saved, polynomials)``: ``final`` holds ``q, p, estimate, acc`` and the
         ``COUNTERS`` (``status``, ``total`` and ``most`` Newton iterations, ``trips`` of the
-        batch); ``saved = (qs, ps)`` of shape ``(n_blocks, d)``, the state at the end of each
+        batch, ``lenient``: elements accepted other than at round-off, ``_solve._converged``);
+        ``saved = (qs, ps)`` of shape ``(n_blocks, d)``, the state at the end of each
         block; ``polynomials`` is ``(Z_starts, W)`` per element or None. States and the
         estimate of a failed run are NaN.
     """
-    fn = element_residual(H)
+    solver = options.solver
+    fn = element_residual(H, solver.sweep_dimension)
     H_bound = bind_args(H, args)
     d = q0.shape[0]
     split = lambda z: (z[:d], z[d:])
@@ -206,9 +198,9 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     # the state a failed run carries from then on (no NaN enters the linearisation, nor,
     # under vmap, the others' gradients), and whose scale starts a run
     start = dict(z=z0, z_prev=z0, Z_prev=guess, scale=state_scale(z0))
-    carry = dict(start, comp=jnp.zeros_like(z0), misses=jnp.zeros((max(MISS_ORDERS),) + guess.shape, guess.dtype),
+    carry = dict(start, comp=jnp.zeros_like(z0), misses=jnp.zeros((max(solver.miss_orders),) + guess.shape, guess.dtype),
                  correction=jnp.zeros_like(guess),
-                 matrix=initial_matrix(guess, method.fixed_point), counters=counters0, done=jnp.zeros((), jnp.int32),
+                 matrix=initial_matrix(guess, options), counters=counters0, done=jnp.zeros((), jnp.int32),
                  estimate=jnp.zeros((), z0.dtype), acc=acc0, steps=jnp.zeros((), jnp.int32))
     if estimate is True:
         carry["peak"] = peak_start(q0, p0, guess, h)
@@ -222,7 +214,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         idle = jnp.zeros((), bool) if n_active is None else c["done"] >= n_active
         previous = (*split(c["z_prev"]), c["Z_prev"])
         Z_pred, continued, constant = predictor(method, q, p, previous, c["correction"])
-        Z, matrix, iterations, status, trips = solve(
+        Z, matrix, iterations, status, trips, lenient = solve(
             fn, (method, q, p, h_el, args), Z_pred, constant, c["matrix"], c["scale"], failed | idle, options)
         z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h_el)), c["comp"])
         scale = state_scale(z1)  # the next element's (NaN or inf where z1 is not finite)
@@ -234,10 +226,11 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         status = jnp.where(failed, counters[_AT["status"]], status)  # the first failure is kept
         ok = status == Status.SUCCESS
         now = jax.tree.map(lambda a, b: jnp.where(ok, b, a), start, dict(z=z1, z_prev=z, Z_prev=Z, scale=scale))
-        misses, correction = miss_correction(c["misses"], Z - continued, c["done"])
+        misses, correction = miss_correction(c["misses"], Z - continued, c["done"], solver.miss_orders)
         acc = c["acc"] if observe is None else observe(c["acc"], *split(now["z"]))
         counters = jnp.stack([status, counters[_AT["total"]] + iterations,
-                              jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips])
+                              jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips,
+                              counters[_AT["lenient"]] + lenient])
         new = dict(c, **now, comp=comp, misses=misses, correction=correction, matrix=matrix,
                    counters=counters.astype(jnp.int32), done=c["done"] + 1,
                    estimate=jnp.maximum(c["estimate"], local), acc=acc, steps=c["steps"] + ok)

@@ -31,7 +31,7 @@ def replay(H, controller, options, inputs, t0, hs, places):
     """
     method, q0, p0, args = inputs
     fn, q0, p0, args, _, clock = _adaptive.problem(H, controller, q0, p0, t0, args)
-    residual, H_bound = element_residual(fn), bind_args(fn, args)
+    residual, H_bound = element_residual(fn, options.solver.sweep_dimension), bind_args(fn, args)
     z0 = jnp.concatenate([q0, p0])
 
     def element(carry, h):
@@ -40,14 +40,14 @@ def replay(H, controller, options, inputs, t0, hs, places):
         h = jnp.where(active, h, 1.0)
         q, p = jnp.split(z, 2)
         guess = method.initial_guess(q, p)
-        Z, matrix, _, status, _ = solve(residual, (method, q, p, h, args), guess, guess, matrix, state_scale(z),
+        Z, matrix, _, status, _, _ = solve(residual, (method, q, p, h, args), guess, guess, matrix, state_scale(z),
                                         ~active, options)
         z1 = z + jnp.concatenate(method.increment(H_bound, q, p, Z, h))
         z1 = jnp.where(active, jnp.where(status == Status.SUCCESS, z1, jnp.nan), z)
         kept = None if places is None else (z, method.polynomial(H_bound, q, p, Z, h), z1)
         return (z1, matrix), kept
 
-    start = (z0, initial_matrix(method.initial_guess(q0, p0), method.fixed_point))
+    start = (z0, initial_matrix(method.initial_guess(q0, p0), options))
     (z_end, _), kept = jax.lax.scan(element, start, hs)
     saved = None if places is None else _output.saved_states(places, z0, *kept)
     if clock is not None:

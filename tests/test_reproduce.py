@@ -11,8 +11,8 @@ FIGURES = ["fig4_1", "fig4_2", "fig4_3", "fig4_4", "fig4_5", "fig4_6", "fig4_7",
 
 
 @pytest.fixture(scope="module")
-def result(tmp_path_factory):
-    return reproduce.reproduce(tmp_path_factory.mktemp("reproduce"), quick=True)
+def result(reproduced):
+    return reproduced  # once per test run, shared with test_table51.py (``conftest.reproduced``)
 
 
 def test_writes_every_figure_and_the_table(result):

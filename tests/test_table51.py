@@ -31,8 +31,8 @@ FILLED = [cell for cell in CELLS if cell[3] is not None]
 
 
 @pytest.fixture(scope="module")
-def table():
-    return reproduce.table51()  # ~10 s: 5 compilations, then 44 runs of 200 or 2000 steps
+def table(reproduced):
+    return reproduced["table51"]  # measured once per test run (``conftest.reproduced``)
 
 
 @pytest.mark.parametrize("method, quantity, column, paper", FILLED, ids=[f"{m}-{q}-{c}" for m, q, c, _ in FILLED])

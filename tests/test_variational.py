@@ -200,10 +200,10 @@ def test_lagrangian_vi_converges_at_order_2s_on_the_relativistic_problem():
 
 
 def test_galerkin_vi_energy_error_is_bounded_over_long_runs():
-    """No secular drift over 10^5 steps of Kepler e = 0.6: the energy error of the second half
-    is no larger than that of the first (a drift would double it)."""
+    """No secular drift over 2 10^4 steps (64 periods) of Kepler e = 0.6: the energy error of
+    the second half is no larger than that of the first (a drift would double it)."""
     H, q0, p0 = helpers.kepler(0.6)
-    sol = gj.integrate(H, q0, p0, method=gj.GalerkinVI(2, gj.gauss_legendre(3)), h=0.02, n_steps=100_000, save_every=50)
+    sol = gj.integrate(H, q0, p0, method=gj.GalerkinVI(2, gj.gauss_legendre(3)), h=0.02, n_steps=20_000, save_every=10)
     assert int(sol.status) == 0
     error = np.abs(np.asarray(jax.vmap(H)(sol.q, sol.p)) - float(H(q0, p0)))
     half = len(error) // 2

@@ -1,0 +1,58 @@
+"""Hard first elements: the solver's iterations against plain Newton's (issue 23).
+
+    python benchmarks/bench_stress.py
+
+For every case of the stress set (``tests/test_stress.py``: large h omega, large momenta,
+near-collisions, a non-separable H, every method family; one element from the constant guess)
+this records plain Newton's iterations (a fresh dense Jacobian every iteration, full steps,
+written in the test independently of the library), the solver's at the default options and
+with the watchdog off (``SolverOptions(watch=0)``: halving from the first full step that
+raises the residual, as before issue 23), the ratio to plain Newton, the status, and the
+distance between the two roots in units of eps times the state's size. Writes
+results/stress.json.
+"""
+
+import pathlib
+import sys
+
+import jax
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+sys.path.insert(0, str(pathlib.Path(__file__).parent.parent / "tests"))
+
+import galerkin_jax as gj  # noqa: E402
+import test_stress  # noqa: E402
+from _common import write  # noqa: E402
+
+
+def row(name):
+    H, q, p, method, h, keywords = test_stress.CASES[name]
+    plain, ours, difference, status = test_stress.compare(name)
+    _, no_watch, no_watch_status = test_stress.solver_element(
+        method, H, q, p, h, dict(keywords, solver=gj.SolverOptions(watch=0)))
+    return {"plain_newton_iterations": plain, "iterations": ours, "ratio": ours / plain, "status": status,
+            "root_difference_eps": difference, "iterations_without_watchdog": no_watch,
+            "status_without_watchdog": no_watch_status}
+
+
+def main():
+    rows = {}
+    for name in test_stress.CASES:
+        rows[name] = r = row(name)
+        print(f"{name:82} plain {r['plain_newton_iterations']:3d}  ours {r['iterations']:3d}  "
+              f"(x{r['ratio']:.2f})  status {r['status']}  root difference {r['root_difference_eps']:7.2f} eps  "
+              f"without watchdog {r['iterations_without_watchdog']:3d} (status {r['status_without_watchdog']})",
+              flush=True)
+    ratios = np.array([r["ratio"] for r in rows.values()])
+    summary = {"cases": len(rows), "max_ratio": float(ratios.max()), "mean_ratio": float(ratios.mean()),
+               "failures": sum(r["status"] != 0 for r in rows.values()),
+               "failures_without_watchdog": sum(r["status_without_watchdog"] != 0 for r in rows.values()),
+               "default_cap": gj.SolverOptions().max_iterations}
+    print(summary)
+    write("stress", {"summary": summary, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()

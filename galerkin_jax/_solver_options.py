@@ -1,0 +1,152 @@
+"""``SolverOptions``: the implicit solve's options, one frozen object (``_solve`` reads them)."""
+
+import dataclasses
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverOptions:
+    """The implicit solve's options: one frozen, hashable object (a static argument under
+    ``jax.jit``), passed as ``solver=`` to ``step``, ``integrate``, ``sweep`` and
+    ``amplification_matrix``. ``max_newton_iterations=`` and ``krylov=`` there are shorthands
+    for the first two fields (``solver_from``). Units: "unknowns" are the entries of one
+    element's unknown Z (k * 2d for cG(k), (k + 1) * 2d for dG(k)); "iterations" are updates
+    of Z; "elements" are time elements.
+
+    The first group decides what a member may return (correctness); the rest only how fast it
+    gets there (speed): whatever their values, an element is accepted by the stopping rule
+    (``_converged``) alone, and no value of them changes a root beyond round-off.
+
+    Attributes:
+        max_iterations: iterations per element after which a member fails with status 1. The
+            fixed-point iteration counts in blocks (``fixed_point_block``, ``first_block``), so
+            a cap is rounded up to a block's end there.
+        krylov: Newton by GMRES on Jacobian-vector products for systems of more than
+            ``dense_limit`` unknowns, which otherwise have the fixed point only: a stiff large
+            system (h omega >~ 1) needs it. It compiles a larger program.
+        noise: updates below ``noise * eps`` of the state are round-off (eps of the dtype):
+            they may stop shrinking without that meaning a slow matrix. The stopping rule
+            reads it.
+        dense_limit (unknowns): the largest system that keeps a dense Newton matrix (n^2
+            memory per member, an n^3 inverse per refresh); above it Newton is Newton-Krylov.
+        small (unknowns): systems up to this size solve their first element by Newton (the
+            predictor has no history yet and a Newton update costs two to three fixed-point
+            ones), stay with Newton once switched, and refresh their matrix at a low rate.
+        sweep_dimension (degrees of freedom d): partitioned methods on states of more than
+            this iterate the Gauss-Seidel sweep's residual (``_march.element_residual``), which
+            contracts at about the square of the plain fixed point's rate; below it the sweep's
+            two half-residuals cost more than its rate saves.
+        theta_fixed_point (rate): a fixed-point member whose updates shrink by less than this
+            per update switches to Newton.
+        theta_newton (rate, small and large systems): a Newton member whose updates shrink by
+            less than this refreshes its matrix (a small system's refresh is cheap, a large
+            one's costs an n^3 inverse).
+        patience (iterations): a Newton member refreshes its matrix after this many iterations
+            with it in one element, however it contracts.
+        fixed_point_patience (iterations, small and large systems): a fixed-point member
+            switches to Newton after this many iterations in one element; at most half of
+            ``max_iterations`` (``fixed_point_patience_for``), so that Newton is always reached.
+        newton_stretch (elements): a large system that switched to Newton stays with it this
+            long, then tries the fixed point again (one hard element does not cost it the run).
+        fixed_point_block (iterations): fixed-point updates per check (a check costs more
+            kernels than an update).
+        first_block (iterations): the first block of an element of more than ``small``
+            unknowns (it needs four to six updates; the check after two never accepts).
+        stragglers: a batch of at least ``8 * stragglers`` members iterates its last
+            ``1 / stragglers`` apart, gathered, so that it does not pay for its slowest members.
+        refresh_share: a batch refreshes at most ``max(8, B // refresh_share)`` matrices per
+            iteration (gathered, so the work follows the members that ask).
+        watch (iterations): in an element whose predictor is the constant guess (a run's
+            first, ``step``), a full Newton step with a fresh matrix that raises
+            the residual is taken anyway, and so are the fresh steps after it until the residual is below where
+            it started, of which at most ``watch`` may raise it again; then the steps are halved
+            for the rest of the element (the watchdog: far from the root, plain Newton's first
+            step can raise the residual and still lead to the root in a few more). 0: halving
+            from the first such step.
+        min_damping: the smallest fraction of a Newton step tried before the step is taken as
+            it is (halving from 1).
+        doubtful_start: a predictor whose residual is not below this fraction of the unknowns
+            competes with the constant guess (a continued polynomial can overshoot at large
+            h omega).
+        miss_orders: the orders of extrapolation of the predictor's misses it chooses from
+            (``_march.miss_correction``; one or more, the lowest first): the high one where the
+            misses are smooth, the low one where they are not.
+        krylov_tolerance, krylov_restart, krylov_restarts: GMRES's relative residual (each
+            update leaves this much of the error, so the updates reach the floor in two or
+            three), its restart length and the number of restarts.
+    """
+
+    max_iterations: int = 48
+    krylov: bool = False
+    noise: float = 100.0
+    dense_limit: int = 256
+    small: int = 32
+    sweep_dimension: int = 8
+    theta_fixed_point: float = 0.5
+    theta_newton: tuple = (0.03, 0.25)
+    patience: int = 8
+    fixed_point_patience: tuple = (12, 24)
+    newton_stretch: int = 16
+    fixed_point_block: int = 2
+    first_block: int = 4
+    stragglers: int = 8
+    refresh_share: int = 8
+    watch: int = 4
+    min_damping: float = 1.0 / 64
+    doubtful_start: float = 0.1
+    miss_orders: tuple = (2, 6)
+    krylov_tolerance: float = 1e-7
+    krylov_restart: int = 20
+    krylov_restarts: int = 10
+
+    def __post_init__(self):
+        for name in ("max_iterations", "dense_limit", "small", "sweep_dimension", "patience", "newton_stretch",
+                     "fixed_point_block", "first_block", "stragglers", "refresh_share", "krylov_restart",
+                     "krylov_restarts"):
+            _check_count(name, getattr(self, name), 1)
+        _check_count("watch", self.watch, 0)
+        for name in ("theta_newton", "fixed_point_patience", "miss_orders"):
+            value = getattr(self, name)
+            if not isinstance(value, tuple) or len(value) != 2 and name != "miss_orders" or not value:
+                raise ValueError(f"SolverOptions.{name} must be a tuple of two values (miss_orders: of one "
+                                 f"or more), got {value!r}.")
+        for name in ("fixed_point_patience", "miss_orders"):
+            for value in getattr(self, name):
+                _check_count(name, value, 1)
+        for name in ("noise", "theta_fixed_point", "min_damping", "doubtful_start", "krylov_tolerance") + (
+                "theta_newton",):
+            values = getattr(self, name) if name == "theta_newton" else (getattr(self, name),)
+            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in values):
+                raise ValueError(f"SolverOptions.{name} must be positive, got {getattr(self, name)!r}.")
+        if not isinstance(self.krylov, bool):
+            raise TypeError(f"SolverOptions.krylov must be a bool, got {self.krylov!r}.")
+
+    def fixed_point_patience_for(self, large):
+        """Iterations a fixed-point member of a small (False) or large (True) system takes in
+        one element before it switches to Newton: at most half the cap."""
+        return max(1, min(self.fixed_point_patience[int(large)], self.max_iterations // 2))
+
+
+def _check_count(name, value, least):
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise ValueError(f"SolverOptions.{name} must be an integer >= {least}, got {value!r}.")
+
+
+def solver_from(solver=None, max_newton_iterations=None, krylov=None):
+    """The ``SolverOptions`` of an entry point's ``solver=`` and its shorthands: the one place
+    they are built. A shorthand given replaces its field of ``solver`` (default options where
+    None)."""
+    if solver is None:
+        solver = SolverOptions()
+    elif not isinstance(solver, SolverOptions):
+        raise TypeError(f"solver must be a galerkin_jax.SolverOptions, got {type(solver).__name__}.")
+    changes = {}
+    if max_newton_iterations is not None:
+        value = max_newton_iterations
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"max_newton_iterations must be an integer >= 1, got {value!r}.")
+        changes["max_iterations"] = int(value)
+    if krylov is not None:
+        changes["krylov"] = bool(krylov)
+    return dataclasses.replace(solver, **changes) if changes else solver
