@@ -70,6 +70,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _tangent
 from ._pytree import pytree_dataclass
 from ._solver_options import SolverOptions, solver_from
 
@@ -706,22 +707,21 @@ def _batched(fn, options):
     return iterate
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def implicit(fn, params, Z, ok):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def implicit(fn, dense_limit, params, Z, ok):
     """``Z``, a root of ``fn(., params)``, with the tangent of the implicit function theorem:
     ``dZ = -(dR/dZ)^{-1} dR/dparams dparams`` where ``ok``, zero elsewhere (a failed solve
     has no derivative; its states are NaN). The linear solve follows the forward solve's:
-    dense up to ``DENSE_LIMIT`` unknowns, matrix-free GMRES above (``_tangent``)."""
+    dense up to ``dense_limit`` unknowns (``SolverOptions.dense_limit``), matrix-free GMRES
+    above (``_tangent``)."""
     return Z
 
 
 @implicit.defjvp
-def _implicit_jvp(fn, primals, tangents):
-    from . import _tangent
-
+def _implicit_jvp(fn, dense_limit, primals, tangents):
     params, Z, ok = primals
-    Z = implicit(fn, params, Z, ok)  # Z moves with params where the rule is differentiated again
-    return Z, _tangent.tangent(fn, params, Z, ok, tangents[0], dense_limit=DENSE_LIMIT)
+    Z = implicit(fn, dense_limit, params, Z, ok)  # Z moves with params where the rule is differentiated again
+    return Z, _tangent.tangent(fn, params, Z, ok, tangents[0], dense_limit=dense_limit)
 
 
 def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, options):
@@ -744,5 +744,5 @@ def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, options):
     args = jax.lax.stop_gradient((params, Z_pred, Z_alt, matrix, scale, skip))
     expanded = jax.tree.map(lambda x: jnp.asarray(x)[None], args)
     Z, matrix, iterations, status, trips, lenient = jax.tree.map(lambda x: x[0], iterate(*expanded))
-    Z = implicit(fn, params, Z, (status == Status.SUCCESS) & ~skip)  # skipped: no root, no derivative
+    Z = implicit(fn, options.solver.dense_limit, params, Z, (status == Status.SUCCESS) & ~skip)  # skipped: no root
     return Z, jax.lax.stop_gradient(matrix), iterations, status, trips, lenient

@@ -152,6 +152,6 @@ def test_tangents_are_masked_by_status_not_by_value():
     from galerkin_jax._solve import implicit
 
     fn = lambda Z, c: Z - c * jnp.sqrt(Z)  # at Z = 0, c = 0: dR/dZ = 1 - 0 / 0, a NaN Jacobian
-    tangent = lambda ok: jax.jvp(lambda c: implicit(fn, c, jnp.zeros(1), ok), (0.0,), (1.0,))[1]
+    tangent = lambda ok: jax.jvp(lambda c: implicit(fn, 256, c, jnp.zeros(1), ok), (0.0,), (1.0,))[1]
     assert np.isnan(float(tangent(jnp.asarray(True))[0]))
     assert float(tangent(jnp.asarray(False))[0]) == 0.0

@@ -121,7 +121,7 @@ def test_unconverged_gmres_gives_nan_per_member_not_a_wrong_tangent(mode):
     weights = jnp.asarray(np.random.default_rng(7).normal(size=n))
 
     def member(a, p, Z, ok):
-        Z_of = lambda p: _solve.implicit(blend, (a, p), Z, ok)
+        Z_of = lambda p: _solve.implicit(blend, 256, (a, p), Z, ok)
         if mode == "jvp":
             return jax.jvp(Z_of, (p,), (weights,))[1]
         return jax.grad(lambda p: weights @ Z_of(p))(p)
@@ -143,7 +143,7 @@ def test_second_derivatives_see_the_root_move(n):
     first = 1 / (3 * Z**2 + 1)
     second = -6 * Z * first**3
     w = jnp.asarray(np.random.default_rng(9).normal(size=n))
-    loss = lambda p: w @ _solve.implicit(fn, p, Z, jnp.asarray(True))
+    loss = lambda p: w @ _solve.implicit(fn, 256, p, Z, jnp.asarray(True))
     np.testing.assert_allclose(jax.jit(jax.grad(loss))(p), w * first, rtol=0, atol=1e-12)
     forward_over_reverse = jax.jit(lambda p: jax.jvp(jax.grad(loss), (p,), (w,))[1])(p)
     reverse_over_reverse = jax.jit(jax.grad(lambda p: jax.grad(loss)(p) @ w))(p)
