@@ -110,7 +110,7 @@ def tangent_part():
     print(f"per element: GMRES {per_element['gmres'] / 1e3:.0f} kB, dense {per_element['dense'] / 1e6:.0f} MB "
           f"(one n x n float64 matrix: {n * n * 8 / 1e6:.1f} MB)")
     return {"scene": f"beta-FPUT, {CHAIN} masses, cG(3) + Gauss 3, h = {CHAIN_H}, krylov=True",
-            "unknowns_per_element": n, "dense_limit": _solve.DENSE_LIMIT,
+            "unknowns_per_element": n, "dense_limit": gj.SolverOptions().dense_limit,
             "temp_bytes_per_element": per_element, "rows": rows}
 
 

@@ -52,7 +52,7 @@ class AbstractMethod(abc.ABC):
             concatenation of a q half and a p half of equal shape; then ``residual(...,
             part="q")`` and ``part="p"`` must return the equations of each half alone (those
             whose ``h = 0`` Jacobian is the identity on that half). A method with a fixed
-            point on a state of more than ``_march.SWEEP_DIMENSION`` (8) degrees of freedom
+            point on a state of more than ``SolverOptions.sweep_dimension`` (8) degrees of freedom
             is then solved through the Gauss-Seidel sweep of the two halves, which contracts
             at the square of the plain rate (``_march.element_residual``).
     """

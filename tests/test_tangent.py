@@ -90,7 +90,7 @@ def test_gmres_tangent_equals_the_dense_solve_forward_and_reverse():
     ok = jnp.asarray(True)
     solve = lambda limit: jax.jit(lambda dp: _tangent.tangent(fn, params, Z, ok, dp, dense_limit=limit))
     gmres, dense = solve(0), solve(10**9)
-    assert Z.size > _solve.DENSE_LIMIT
+    assert Z.size > gj.SolverOptions().dense_limit
     forward, expected = gmres(dparams), dense(dparams)
     assert np.abs(forward - expected).max() < 1e-11 * np.abs(expected).max()
     cotangent = jnp.asarray(np.random.default_rng(5).normal(size=Z.shape))
