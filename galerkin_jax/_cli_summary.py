@@ -11,7 +11,9 @@ import galerkin_jax as gj
 
 from . import _cli_output as output
 from . import _cli_specs as specs
-from ._solve import DENSE_LIMIT
+from ._solver_options import SolverOptions
+
+DENSE_LIMIT = SolverOptions().dense_limit  # unknowns per element above which Newton needs --krylov
 
 ROUND_OFF = 1e3  # in eps: a relative energy change below it is round-off, over thousands of steps
 LARGE = 1e-2  # a relative energy error above it: the steps do not resolve the motion
