@@ -76,12 +76,21 @@ def check_tuning(text):
     assert number(r"Kepler: loss reduced by ([\d.]+)x", text) > 10
 
 
+def check_adaptive(text):
+    # measured 1.03: the time transformation's energy error does not drift over 20 orbits, PID
+    # control's does (3.04); the events lie on the section q1 = 0 to round-off (2.4e-16)
+    assert number(r"TimeTransform +max\|dH\| .* ratio +([\d.]+)", text) < 1.2
+    assert number(r"PID +max\|dH\| .* ratio +([\d.]+)", text) > 1.5
+    assert number(r"max \|q1\| at the events: ([\d.e+-]+)", text) < 1e-12
+
+
 CHECKS = {
     "01_quickstart.ipynb": check_quickstart,
     "02_gbs_galerkin_methods.ipynb": check_gbs,
     "03_tang_variational_integrators.ipynb": check_tang,
     "04_speed_and_accuracy.ipynb": check_speed,
     "05_tuning.ipynb": check_tuning,
+    "06_adaptive.ipynb": check_adaptive,
 }
 
 
@@ -161,6 +170,15 @@ KEY_FIGURES = {
         Figure(rf"dG\(1\) rho: loss reduced by {FLOAT}x", rel=0.05),
         Figure(rf"rho at Omega = 0.1, 100: \[{FLOAT} ", rel=0.01),
         Figure(rf"rho at Omega = 0.1, 100: \[[\d.]+ {FLOAT}\]", rel=0.05),
+    ],
+    "06_adaptive.ipynb": [  # one size: the quick run is the committed one
+        Figure(r"^PID +status (\d+)", quick=True),
+        Figure(r"^TimeTransform +status (\d+)", quick=True),
+        Figure(r"^steps: PID (\d+)", rel=0.02, quick=True),
+        Figure(r"^steps: .*TimeTransform (\d+)", rel=0.02, quick=True),
+        Figure(rf"^last / first quarter: PID {FLOAT}", rel=0.1, quick=True),
+        Figure(rf"^last / first quarter: .*TimeTransform {FLOAT}", rel=0.05, quick=True),
+        Figure(rf"max \|q1\| at the events: {FLOAT}", below=1e-12, quick=True),
     ],
 }
 
