@@ -118,7 +118,8 @@ KEY_FIGURES = {
         Figure(r"^status (\d+) \w+ - ", quick=True),
         Figure(r"^h = 0\.3: status (\d+)", quick=True),
         Figure(r"^h = 1\.0: status (\d+)", quick=True),  # the element with no root the text teaches from
-        Figure(rf"^h = 0\.3: .*error_estimate {FLOAT},", rel=0.05, quick=True),
+        # the run's largest estimate: taken where the embedded estimate peaks, so it depends on the run's length
+        Figure(rf"^h = 0\.3: .*error_estimate {FLOAT},", rel=0.05),
         Figure(rf"^h = 1\.0: .*error_estimate {FLOAT},", rel=0.05, quick=True),
         Figure(rf"^h = 0\.3: .*max \|q - q_exact\| = {FLOAT}", rel=0.1),
         Figure(rf"error_estimate falls like h\^{FLOAT}", rel=0.01, quick=True),
