@@ -100,10 +100,10 @@ def _event_update(event, g, c, step, accept, clock):
     dtype = z.dtype
     g_b = g(step["t_b"], step["z1"])
     hit = accept & _crossing(event, c["g_a"], g_b)
-    f = lambda a: g(_output._time(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
+    f = lambda a: g(_output.time_at(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
     alpha = _output.locate(f, jnp.zeros((), dtype), jnp.ones((), dtype), c["g_a"])
     at = _output.on_polynomial(z, W, alpha[None])[0]
-    t_ev = _output._time(z, W, alpha, t, h, clock)
+    t_ev = _output.time_at(z, W, alpha, t, h, clock)
     slot = jnp.where(hit & (c["ev_count"] < event.capacity), c["ev_count"], event.capacity)
     fields = dict(ev_t=c["ev_t"].at[slot].set(t_ev, mode="drop"), ev_z=c["ev_z"].at[slot].set(at, mode="drop"),
                   ev_count=c["ev_count"] + hit, g_a=jnp.where(accept, g_b, c["g_a"]))

@@ -21,7 +21,7 @@ def on_polynomial(z0, W, alpha):
     return z0[None, :] + _basis.combine(_basis.legendre_values(alpha, W.shape[0]), W)
 
 
-def _time(z0, W, alpha, t0, h, clock):
+def time_at(z0, W, alpha, t0, h, clock):
     """The time at ``alpha`` (scalar): ``t0 + alpha h``, or w's coordinate ``clock``."""
     if clock is None:
         return t0 + alpha * h
@@ -55,7 +55,7 @@ def alpha_at_time(z0, W, t, t0, h, clock):
     """alpha in [0, 1] with time(alpha) = t on one element (``t`` between its ends)."""
     if clock is None:
         return jnp.clip((t - t0) / h, 0.0, 1.0)
-    f = lambda a: _time(z0, W, a, t0, h, clock) - t
+    f = lambda a: time_at(z0, W, a, t0, h, clock) - t
     zero = jnp.zeros((), W.dtype)
     return locate(f, zero, jnp.ones((), W.dtype), f(zero), iterations=24)
 
