@@ -23,7 +23,7 @@ import jax.numpy as jnp
 
 from . import _output
 from ._controllers import PIDController, TimeTransform, embedded_error, poincare, scaled_error
-from ._march import (bind_args, compensated_add, element_residual, input_status, peak_estimate, peak_start,
+from ._march import (bind_args, compensated_add, continued, element_residual, input_status, peak_estimate, peak_start,
                      peak_update, state_scale)
 from ._solve import Status, initial_matrix, solve
 
@@ -114,7 +114,7 @@ def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, 
     dtype = z0.dtype
     q0, p0 = jnp.split(z0, 2)
     c = dict(z=z0, comp=jnp.zeros_like(z0), t=t0, z_prev=z0, Z_prev=guess, hs=jnp.zeros((max_steps,), dtype),
-             h=jnp.asarray(h0, dtype), matrix=initial_matrix(guess, options),
+             h=jnp.asarray(h0, dtype), h_prev=jnp.asarray(h0, dtype), matrix=initial_matrix(guess, options),
              status=input_status(q0, p0, h0), h_min=jnp.full((), jnp.inf, dtype), h_max=jnp.zeros((), dtype),
              estimate=jnp.zeros((), dtype),
              **{k: jnp.zeros((), jnp.int32) for k in ("steps", "rejected", "attempts", "total", "most", "trips",
@@ -184,15 +184,16 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         active = ~c["done"]
         z, t = c["z"], c["t"]
         q, p = jnp.split(z, 2)
-        # the previous element's polynomial continued (exact for a constant h, the time
-        # transformation's; the root finder falls back on the constant state where it is worse)
-        constant = method.initial_guess(q, p)
-        continued = method.initial_guess(q, p, (*jnp.split(c["z_prev"], 2), c["Z_prev"]))
-        predicted = jnp.where(c["steps"] > 0, continued, constant)
         last = t + c["h"] * (1 + 4 * jnp.finfo(dtype).eps) >= t1
         h = jnp.where(last & (clock is None), t1 - t, c["h"])
+        # the last accepted element's polynomial continued over this one (the root finder
+        # falls back on the constant state where that is worse)
+        constant = method.initial_guess(q, p)
+        previous = (*jnp.split(c["z_prev"], 2), c["Z_prev"])
+        predicted = jnp.where(c["steps"] > 0, continued(method, q, p, previous, h / c["h_prev"]), constant)
         Z, matrix, iterations, status, trips, lenient = solve(
-            fn, (method, q, p, h, args), predicted, constant, c["matrix"], state_scale(z), ~active, options)
+            fn, (method, q, p, h, args), predicted, constant, c["matrix"], state_scale(z), ~active, c["steps"] == 0,
+            options)
         z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
         W = method.polynomial(H_bound, q, p, Z, h)
         solved = (status == Status.SUCCESS) & jnp.all(jnp.isfinite(z1))
@@ -203,7 +204,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         fail = active & (verdict["status"] != Status.SUCCESS)
         new = dict(c, matrix=matrix, h=jnp.where(active, verdict["h_next"], c["h"]),
                    **jax.tree.map(lambda a, b: jnp.where(active, a, b), verdict["memory"], {k: c[k] for k in memory}))
-        end = dict(z=z1, comp=comp, t=verdict["t_b"], z_prev=z, Z_prev=Z)
+        end = dict(z=z1, comp=comp, t=verdict["t_b"], z_prev=z, Z_prev=Z, h_prev=h)
         if event is not None:
             fields, (hit, t_ev, at) = _event_update(event, g, c, dict(step, t_b=verdict["t_b"]), accept, clock)
             new.update(fields)

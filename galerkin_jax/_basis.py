@@ -100,3 +100,16 @@ def shift_matrix(n, subtract_end=False):
     ahead = npleg.legvander(x + 2.0, n - 1) - (1.0 if subtract_end else 0.0)
     here = npleg.legvander(x, n - 1)
     return test_scale(n)[:, None] * ((here * (w / 2.0)[:, None]).T @ ahead)
+
+
+def continuation(n, ratio=None, subtract_end=False):
+    """``shift_matrix`` for a next element ``ratio`` times as long as the series' own (ratio may
+    be traced; None: 1, the exact static matrix): T[i, j] = (2i + 1) int_0^1 P_i(2a - 1)
+    (P_j(1 + 2 ratio a) - s_j) da, by the same n-point Gauss rule (exact for any ratio)."""
+    if ratio is None:
+        return shift_matrix(n, subtract_end)
+    x, w = npleg.leggauss(n)
+    ratio = jnp.asarray(ratio)
+    ahead = legendre_values(1.0 + ratio * jnp.asarray((x + 1.0) / 2.0, ratio.dtype), n) - (1.0 if subtract_end else 0.0)
+    here = jnp.asarray(test_scale(n)[:, None] * (npleg.legvander(x, n - 1) * (w / 2.0)[:, None]).T, ratio.dtype)
+    return here @ ahead

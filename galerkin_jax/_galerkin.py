@@ -63,12 +63,13 @@ class CG(degree_and_rule("k", least=1)):
     fixed_point = True  # R = C - h (...): dR/dC = I at h = 0, so Z <- Z - R(Z) contracts for small h
     partition_axis = -1  # C's q | p columns; residual(..., part=): the sweep of ``_march.element_residual``
 
-    def initial_guess(self, q0, p0, previous=None):
-        """Zero (the constant state), or the previous element's derivative continued."""
+    def initial_guess(self, q0, p0, previous=None, ratio=None):
+        """Zero (the constant state), or the previous element's derivative continued (C is
+        h z', so an element ``ratio`` times as long scales it by ``ratio``)."""
         if previous is None:
             return jnp.zeros((self.k, 2 * q0.shape[0]), q0.dtype)
-        C = previous[2]
-        return _basis.combine(_basis.shift_matrix(self.k), C)
+        C = _basis.combine(_basis.continuation(self.k, ratio), previous[2])
+        return C if ratio is None else ratio * C
 
     def residual(self, H, q0, p0, C, h, part=None):
         """R(C) = 0 is eq. (16) tested with (2i + 1) P_i, i < k: C_i - h (2i+1) Q[P_i J DH(z^h)];
@@ -107,12 +108,11 @@ class DG(degree_and_rule("k", least=0)):
         and the fixed-point iteration Z <- Z - R(Z) cannot contract."""
         return self.k == 0
 
-    def initial_guess(self, q0, p0, previous=None):
+    def initial_guess(self, q0, p0, previous=None, ratio=None):
         """Zero (the constant state), or the previous element's polynomial continued."""
         if previous is None:
             return jnp.zeros((self.k + 1, 2 * q0.shape[0]), q0.dtype)
-        a = previous[2]
-        return _basis.combine(_basis.shift_matrix(self.k + 1, subtract_end=True), a)
+        return _basis.combine(_basis.continuation(self.k + 1, ratio, subtract_end=True), previous[2])
 
     def residual(self, H, q0, p0, a, h, part=None):
         """R(a) = 0 is eq. (19) tested with (2i + 1) P_i, i <= k; ``part`` "q" or "p": the

@@ -9,6 +9,7 @@ low bits, so round-off grows like sqrt(n)), the predictor's history, the iterati
 the first failure's status, Newton counts and the largest local error estimate.
 """
 
+import inspect
 import math
 
 import jax
@@ -80,7 +81,7 @@ def solve_element(method, H, q, p, h, args, options):
     guess = method.initial_guess(q, p)
     matrix = initial_matrix(guess, options)
     scale = state_scale(jnp.concatenate([q, p]))
-    Z, _, iterations, status, _, _ = solve(fn, params, guess, guess, matrix, scale, jnp.asarray(False), options)
+    Z, _, iterations, status, _, _ = solve(fn, params, guess, guess, matrix, scale, False, True, options)
     dq, dp = method.increment(bind_args(H, args), q, p, Z, h)
     return q + dq, p + dp, Z, iterations, status
 
@@ -90,6 +91,15 @@ def compensated_add(x, dx, c):
     y = dx - c
     s = x + y
     return s, (s - x) - y
+
+
+def continued(method, q, p, previous, ratio):
+    """``method.initial_guess(q, p, previous, ratio=ratio)``, the previous element's polynomial
+    continued over a next element ``ratio`` times as long; a method whose ``initial_guess``
+    takes no ``ratio`` continues over its own length."""
+    if "ratio" not in inspect.signature(method.initial_guess).parameters:
+        return method.initial_guess(q, p, previous)
+    return method.initial_guess(q, p, previous, ratio=ratio)
 
 
 def predictor(method, q, p, previous, correction):
@@ -157,9 +167,9 @@ def peak_estimate(method, H_bound, peak):
     return jax.lax.stop_gradient(jnp.max(jnp.where(frozen["size"] > -jnp.inf, local, 0.0)))
 
 
-# the run's counters, carried as one int32 array (one fused kernel per element, not four);
+# the run's counters, carried as one int32 array (one fused kernel per element, not one each);
 # the count of elements done stays apart: it depends on nothing a vmap maps over
-COUNTERS = ("status", "total", "most", "trips", "lenient")
+COUNTERS = ("status", "total", "most", "trips", "lenient", "steps")
 _AT = {name: i for i, name in enumerate(COUNTERS)}
 
 
@@ -182,7 +192,8 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     Returns:
         ``(final, saved, polynomials)``: ``final`` holds ``q, p, estimate, acc`` and the
         ``COUNTERS`` (``status``, ``total`` and ``most`` Newton iterations, ``trips`` of the
-        batch, ``lenient``: elements accepted other than at round-off, ``_solve._converged``);
+        batch, ``lenient``: elements accepted other than at round-off, ``_solve._converged``,
+        ``steps``: elements solved);
         ``saved = (qs, ps)`` of shape ``(n_blocks, d)``, the state at the end of each
         block; ``polynomials`` is ``(Z_starts, W)`` per element or None. States and the
         estimate of a failed run are NaN.
@@ -201,7 +212,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     carry = dict(start, comp=jnp.zeros_like(z0), misses=jnp.zeros((max(solver.miss_orders),) + guess.shape, guess.dtype),
                  correction=jnp.zeros_like(guess),
                  matrix=initial_matrix(guess, options), counters=counters0, done=jnp.zeros((), jnp.int32),
-                 estimate=jnp.zeros((), z0.dtype), acc=acc0, steps=jnp.zeros((), jnp.int32))
+                 estimate=jnp.zeros((), z0.dtype), acc=acc0)
     if estimate is True:
         carry["peak"] = peak_start(q0, p0, guess, h)
     total = n_blocks * block_size
@@ -215,7 +226,8 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         previous = (*split(c["z_prev"]), c["Z_prev"])
         Z_pred, continued, constant = predictor(method, q, p, previous, c["correction"])
         Z, matrix, iterations, status, trips, lenient = solve(
-            fn, (method, q, p, h_el, args), Z_pred, constant, c["matrix"], c["scale"], failed | idle, options)
+            fn, (method, q, p, h_el, args), Z_pred, constant, c["matrix"], c["scale"], failed | idle, c["done"] == 0,
+            options)
         z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h_el)), c["comp"])
         scale = state_scale(z1)  # the next element's (NaN or inf where z1 is not finite)
         # an estimate, not a function to differentiate (and no 0 * inf from a failed run's)
@@ -230,10 +242,10 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         acc = c["acc"] if observe is None else observe(c["acc"], *split(now["z"]))
         counters = jnp.stack([status, counters[_AT["total"]] + iterations,
                               jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips,
-                              counters[_AT["lenient"]] + lenient])
+                              counters[_AT["lenient"]] + lenient, counters[_AT["steps"]] + ok])
         new = dict(c, **now, comp=comp, misses=misses, correction=correction, matrix=matrix,
                    counters=counters.astype(jnp.int32), done=c["done"] + 1,
-                   estimate=jnp.maximum(c["estimate"], local), acc=acc, steps=c["steps"] + ok)
+                   estimate=jnp.maximum(c["estimate"], local), acc=acc)
         if estimate is True:
             new["peak"] = peak_update(c["peak"], method, H_bound, q, p, Z, h_el, ok & ~idle)
         if n_active is not None:
@@ -257,7 +269,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     status = final["counters"][_AT["status"]]
     if estimate is True:
         final["estimate"] = peak_estimate(method, H_bound, final["peak"])
-    results = dict(q=q, p=p, estimate=nan_if_failed(final["estimate"], status), acc=final["acc"], steps=final["steps"],
+    results = dict(q=q, p=p, estimate=nan_if_failed(final["estimate"], status), acc=final["acc"],
                    **{name: final["counters"][i] for i, name in enumerate(COUNTERS)})
     if kept is not None:
         kept = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), kept)

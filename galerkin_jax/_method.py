@@ -61,7 +61,7 @@ class AbstractMethod(abc.ABC):
     partition_axis = None
 
     @abc.abstractmethod
-    def initial_guess(self, q0, p0, previous=None):
+    def initial_guess(self, q0, p0, previous=None, ratio=None):
         """The first iterate of an element's unknowns.
 
         Args:
@@ -71,6 +71,10 @@ class AbstractMethod(abc.ABC):
                 unknowns, from which a method may continue its polynomial one element ahead
                 (a better predictor: fewer iterations). On a run's first element it is
                 ``(q0, p0, initial_guess(q0, p0))``. Ignoring it is correct, only slower.
+            ratio: None where the element is as long as the previous one; else (adaptive
+                steps) the ratio of its length to the previous one's, a traced scalar, over
+                which the continuation should reach. A method without this parameter is
+                continued over its own length (``_march.continued``).
         Returns:
             ``Z0``, the unknowns' shape, in ``q0``'s dtype.
         """

@@ -23,10 +23,10 @@ class _Increment(AbstractMethod):
 
     fixed_point = True  # R = dz - h (...): dR/dz = I at h = 0
 
-    def initial_guess(self, q0, p0, previous=None):
+    def initial_guess(self, q0, p0, previous=None, ratio=None):
         if previous is None:
             return jnp.zeros((1, 2 * q0.shape[0]), q0.dtype)
-        return previous[2]  # the previous increment
+        return previous[2] if ratio is None else ratio * previous[2]  # the previous increment
 
     def increment(self, H, q0, p0, Z, h):
         return _split(Z)

@@ -41,7 +41,7 @@ def replay(H, controller, options, inputs, t0, hs, places):
         q, p = jnp.split(z, 2)
         guess = method.initial_guess(q, p)
         Z, matrix, _, status, _, _ = solve(residual, (method, q, p, h, args), guess, guess, matrix, state_scale(z),
-                                        ~active, options)
+                                           ~active, True, options)
         z1 = z + jnp.concatenate(method.increment(H_bound, q, p, Z, h))
         z1 = jnp.where(active, jnp.where(status == Status.SUCCESS, z1, jnp.nan), z)
         kept = None if places is None else (z, method.polynomial(H_bound, q, p, Z, h), z1)

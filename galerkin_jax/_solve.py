@@ -179,6 +179,9 @@ class Matrix:
             in one array (one kernel and one copy per element, not two).
         inverse: ``(B, n, n)`` inverse Jacobians, or None when n > ``SolverOptions.dense_limit``
             (then Newton is Newton-Krylov, with ``SolverOptions.krylov``, or there is none).
+        reference: the watchdog's reference iterate and residual (``_rewind``), each Z's shape:
+            buffers of the Newton phase, written before they are read in every element, and
+            kept across elements so that no element copies them in.
 
     ``newton``: the elements, this one included, that the member still solves by Newton; 0 for
     the fixed point (module docstring). ``pending``: ``inverse`` is yet to be computed.
@@ -186,10 +189,12 @@ class Matrix:
 
     state: jax.Array
     inverse: object
+    reference: object
 
     @classmethod
-    def of(cls, newton, pending, inverse):
-        return cls(jnp.stack([jnp.asarray(newton, jnp.int32), jnp.asarray(pending, jnp.int32)], axis=-1), inverse)
+    def of(cls, newton, pending, inverse, reference):
+        state = jnp.stack([jnp.asarray(newton, jnp.int32), jnp.asarray(pending, jnp.int32)], axis=-1)
+        return cls(state, inverse, reference)
 
     @property
     def newton(self):
@@ -206,7 +211,10 @@ def initial_matrix(Z, options):
     n, solver = Z.size, options.solver
     dense = n <= solver.dense_limit
     newton = 1 if dense and n <= solver.small else 0
-    return Matrix.of(newton if options.fixed_point else ALWAYS, True, jnp.zeros((n, n), Z.dtype) if dense else None)
+    inverse = jnp.zeros((n, n), Z.dtype) if dense else None
+    has_newton = dense or options.krylov or not options.fixed_point
+    reference = (jnp.zeros_like(Z), jnp.zeros_like(Z)) if has_newton else None
+    return Matrix.of(newton if options.fixed_point else ALWAYS, True, inverse, reference)
 
 
 def _matvec(K, r):
@@ -555,15 +563,11 @@ def _refresh(problem, c, inverse, reference):
 BACK, DONE_WATCHING = -2, -1  # ``watch``: back to the reference pending; no more watchdog this element
 
 
-def _reference(c):
-    """The watchdog's reference iterate and residual (``_rewind``), first the element's start."""
-    return _get(c, "Z"), _get(c, "r")
-
-
 def _rewind(c, reference):
     """At a refresh, before the matrix is taken: members whose watchdog gave up go back to its reference with half a
     step, the rest that are not watching take their iterate as the reference (a watchdog's
-    first step is a refresh's first, so the reference is where it started)."""
+    first step is a refresh's first, so the reference is where it started; no member goes
+    back before a refresh has written its reference: ``Matrix.reference``)."""
     c = _unpack(c)
     back, idle = c["watch"] == BACK, c["watch"] == 0
     Z, r = _select(back, reference[0], c["Z"]), _select(back, reference[1], c["r"])
@@ -572,7 +576,7 @@ def _rewind(c, reference):
     return _pack(c), (_select(idle, Z, reference[0]), _select(idle, r, reference[1]))
 
 
-def _newton(problem, c, inverse):
+def _newton(problem, c, inverse, reference):
     """The Newton phase: members in Newton mode, and those that asked for it, iterate with
     their matrices, one checked update at a time (damping needs each).
 
@@ -587,7 +591,7 @@ def _newton(problem, c, inverse):
             c, inverse, reference = _refresh(problem, *state)
             return _block(problem, c, inverse, 1), inverse, reference
 
-        return jax.lax.while_loop(moving, step, (c, inverse, _reference(c)))[:2]
+        return jax.lax.while_loop(moving, step, (c, inverse, reference))
 
     def round(state):
         def fresh(c, _, reference):
@@ -599,10 +603,10 @@ def _newton(problem, c, inverse):
         going = lambda c: jnp.any(_live(problem, c) & ~_get(c, "asked"))
         return jax.lax.while_loop(going, lambda c: _block(problem, c, inverse, 1), c), inverse, reference
 
-    return jax.lax.while_loop(moving, round, (c, inverse, _reference(c)))[:2]
+    return jax.lax.while_loop(moving, round, (c, inverse, reference))
 
 
-def _newton_krylov(problem, c):
+def _newton_krylov(problem, c, reference):
     """The Newton phase of a system without a dense matrix: every update a fresh Newton
     direction, by GMRES (``_Problem.newton_krylov``). There is no matrix to wait for: every
     member that asks is served at once."""
@@ -613,7 +617,7 @@ def _newton_krylov(problem, c):
         c, reference = _rewind(*state)
         return _block(problem, serve(c), KRYLOV, 1), reference
 
-    return jax.lax.while_loop(moving, step, (serve(c), _reference(c)))[0]
+    return jax.lax.while_loop(moving, step, (serve(c), reference))
 
 
 def _start(problem, Z_pred, Z_alt, skip):
@@ -635,7 +639,7 @@ def _start(problem, Z_pred, Z_alt, skip):
     return Z, r, r_size, jnp.isfinite(r_size)
 
 
-def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
+def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
     """The iteration for a batch (every argument has a leading axis B); see the module docstring.
 
     Returns ``(Z, matrix, iterations, status, trips, lenient)``; ``trips`` counts the batch's
@@ -646,10 +650,9 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     krylov = matrix.inverse is None and (options.krylov or not options.fixed_point)
     problem = _Problem(fn, params, scale, solver, matrix.inverse is not None or krylov)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
-    # the watchdog watches an element whose predictor is the constant guess (a run's first,
-    # ``step``): elsewhere the predictor has the previous elements' history
-    constant = jnp.all((Z_pred == Z_alt).reshape(B, -1), axis=1)
-    watch = jnp.where(constant, 0, DONE_WATCHING).astype(jnp.int32)
+    # the watchdog watches an element whose predictor is the constant guess (``first``):
+    # elsewhere the predictor has the previous elements' history
+    watch = jnp.where(first, 0, DONE_WATCHING).astype(jnp.int32)
     nan, false = jnp.full(B, jnp.nan, dtype), jnp.zeros(B, bool)
     newton = matrix.newton > 0
     asked = newton & matrix.pending & ok & ~skip
@@ -663,11 +666,11 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     c = _pack(c)
     if options.fixed_point:
         c = _fixed_point(problem, c)
-    inverse = matrix.inverse
+    inverse, reference = matrix.inverse, matrix.reference
     if inverse is not None:
-        c, inverse = _newton(problem, c, inverse)
+        c, inverse, reference = _newton(problem, c, inverse, reference)
     elif krylov:
-        c = _newton_krylov(problem, c)
+        c, reference = _newton_krylov(problem, c, reference)
     c = _unpack(c)
     status = jnp.where(c["active"], Status.NEWTON_MAX_ITERATIONS, c["status"]).astype(jnp.int32)
     # a failed member's unknowns become its constant predictor: a finite point for the
@@ -676,7 +679,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip):
     # elements of Newton left: one fewer for a member in Newton mode, a stretch for one that switched
     switched = solver.newton_stretch if n > solver.small else ALWAYS
     left = jnp.where(newton, matrix.newton, jnp.where(c["newton"], switched, 0)) - c["newton"]
-    matrix = Matrix.of(left, matrix.pending & ~c["fresh"], inverse)
+    matrix = Matrix.of(left, matrix.pending & ~c["fresh"], inverse, reference)
     lenient = c["lenient"] & (status == Status.SUCCESS)
     return Z, matrix, c["iterations"], status, jnp.broadcast_to(c.get("trips", c["iterations"]), (B,)), lenient
 
@@ -726,7 +729,7 @@ def _implicit_jvp(fn, dense_limit, primals, tangents):
     return Z, _tangent.tangent(fn, params, Z, ok, tangents[0], dense_limit=dense_limit)
 
 
-def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, options):
+def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, first, options):
     """The root of ``fn(Z, params) = 0`` for one run (vmappable: vmap axes join the batch).
 
     Args:
@@ -736,6 +739,8 @@ def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, options):
         matrix: the ``Matrix`` carried from the previous element.
         scale: size of the state the unknowns are increments of.
         skip: do not iterate (an earlier element failed).
+        first: ``Z_pred`` is the constant guess (a run's first element, ``step``), which the
+            watchdog watches (``SolverOptions.watch``).
         options: ``Options``; static.
     Returns:
         ``(Z, matrix, iterations, status, trips, lenient)``: ``trips`` counts the updates the
@@ -743,7 +748,7 @@ def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, options):
         other than at round-off (``_converged``).
     """
     iterate = _batched(fn, options)
-    args = jax.lax.stop_gradient((params, Z_pred, Z_alt, matrix, scale, skip))
+    args = jax.lax.stop_gradient((params, Z_pred, Z_alt, matrix, scale, skip, jnp.asarray(first)))
     expanded = jax.tree.map(lambda x: jnp.asarray(x)[None], args)
     Z, matrix, iterations, status, trips, lenient = jax.tree.map(lambda x: x[0], iterate(*expanded))
     Z = implicit(fn, options.solver.dense_limit, params, Z, (status == Status.SUCCESS) & ~skip)  # skipped: no root

@@ -22,9 +22,10 @@ def _rule_arrays(rule, dtype):
     return jnp.asarray(rule.points, dtype), jnp.asarray(rule.weights, dtype)
 
 
-def _continued(C, s):
-    """Legendre coefficients of a degree s - 1 series continued one element ahead."""
-    return _basis.combine(_basis.shift_matrix(s), C)
+def _continued(C, s, ratio=None):
+    """Legendre coefficients of a degree s - 1 series continued over the next element, ``ratio``
+    times as long (``_basis.continuation``)."""
+    return _basis.combine(_basis.continuation(s, ratio), C)
 
 
 @pytree_dataclass
@@ -50,13 +51,14 @@ class GalerkinVI(degree_and_rule("s", least=1)):
     fixed_point = True  # dR/dZ = I at h = 0
     partition_axis = 0  # Z's c (q) | mu (p) rows; residual(..., part=): the sweep of ``_march.element_residual``
 
-    def initial_guess(self, q0, p0, previous=None):
+    def initial_guess(self, q0, p0, previous=None, ratio=None):
         if previous is None:
             return jnp.zeros((2 * self.s, q0.shape[0]), q0.dtype)
         _, p_prev, Z = previous
         c, mu = jnp.split(Z, 2)
-        mu = _continued(mu, self.s).at[0].add(p_prev - p0)  # P_prev(1 + tau) - p_n
-        return jnp.concatenate([_continued(c, self.s), mu])
+        mu = _continued(mu, self.s, ratio).at[0].add(p_prev - p0)  # P_prev(1 + ratio tau) - p_n
+        c = _continued(c, self.s, ratio)  # c is h Q'
+        return jnp.concatenate([c if ratio is None else ratio * c, mu])
 
     def _stages(self, H, q0, p0, Z):
         s, dtype = self.s, Z.dtype
@@ -115,11 +117,10 @@ class LagrangianVI(degree_and_rule("s", least=1)):
     # the dense limit) needs neither.
     fixed_point = False
 
-    def initial_guess(self, q0, p0, previous=None):
+    def initial_guess(self, q0, p0, previous=None, ratio=None):
         if previous is None:
             return jnp.zeros((self.s, q0.shape[0]), q0.dtype)
-        v = previous[2]
-        return _continued(v, self.s)
+        return _continued(previous[2], self.s, ratio)  # v is Q' in t, not scaled by h
 
     def _stages(self, L, q0, v, h):
         alpha, w = _rule_arrays(self.quadrature, v.dtype)
