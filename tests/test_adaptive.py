@@ -218,8 +218,11 @@ def test_derivatives_through_a_controlled_run(controller):
     and equal a central difference of the exact flow to the runs' accuracy; the time-transformed
     run's states are differentiated at fixed t (without that correction: -11.9 against -13.7)."""
     ts = jnp.array([0.0, 1.0, 3.3, T])
-    run = lambda x: gj.integrate(H, Q0.at[0].set(x), P0, method=CG4, h=0.05, t1=T, controller=controller, save_at=ts)
-    loss = lambda x: jnp.sum(run(x).q[-1] ** 2) + run(x).p[2, 1]
+
+    def loss(x):
+        sol = gj.integrate(H, Q0.at[0].set(x), P0, method=CG4, h=0.05, t1=T, controller=controller, save_at=ts)
+        return jnp.sum(sol.q[-1] ** 2) + sol.p[2, 1]
+
     grad = jax.grad(loss)(Q0[0])
     _, tangent = jax.jvp(loss, (Q0[0],), (jnp.ones_like(Q0[0]),))
     eps = 1e-5
