@@ -72,9 +72,10 @@ def test_a_step_is_the_root_of_the_element_equations_for_non_separable_H():
     for method in METHODS:
         shape = method.initial_guess(q0, p0).shape
         R = lambda z: method.residual(H, q0, p0, z.reshape(shape), h).reshape(-1)
+        newton = jax.jit(lambda z: z - jnp.linalg.solve(jax.jacfwd(R)(z), R(z)))
         z = jnp.zeros(np.prod(shape))
         for _ in range(8):
-            z = z - np.linalg.solve(jax.jacfwd(R)(z), R(z))
+            z = newton(z)
         Z = z.reshape(shape)
         dq, dp = method.increment(H, q0, p0, Z, h)
         q1, p1 = gj.step(H, q0, p0, method=method, h=h)
