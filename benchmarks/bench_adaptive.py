@@ -289,18 +289,35 @@ def plot_work_precision(records, problems, path):
 # ---------------------------------------------------------------- (c) long runs
 
 
+def kepler_density(q0):
+    """Kepler's own step density s = (r / r0)^(3/2), the orbit's dynamical time scale at radius r
+    (Kepler's third law; the Sundman transformation's power), normalised to s(z0) = 1: one
+    square root per evaluation, where the default s brings H's Hessian into the element
+    equations."""
+    r0 = float(np.linalg.norm(np.asarray(q0)))
+    return lambda q, p: (jnp.sum(q * q) / r0**2) ** 0.75
+
+
 def energy_run(kind, method, H, q0, p0, T, max_steps):
-    """``run(knob) -> (energy error at every node, node times, steps, status)`` for the
-    TimeTransform (knob h in tau), the PIDController (knob tol) or uniform steps (knob h; the
-    same while loop, ``save_at=[T]``)."""
+    """``run(knob) -> (energy error at every node, node times, steps, status, Newton iterations)``
+    for the TimeTransform with its default s or with Kepler's own (knob: h in tau), the
+    PIDController (knob: tol) or uniform steps (knob: h; fixed steps, every state saved: the
+    run a user makes to watch the energy)."""
+
+    def uniform(knob, q0, p0):
+        n = int(np.ceil(T / knob))
+        sol = gj.integrate(H, q0, p0, method=method, h=knob, n_steps=n, error_estimate=False)
+        return (jax.vmap(H)(sol.q, sol.p) - H(q0, p0), sol.t, sol.stats["num_steps"], sol.status,
+                sol.stats["num_newton_iterations"])
 
     def run(knob):
-        if kind == "TimeTransform":
-            kw = dict(h=knob, controller=gj.TimeTransform())
-        elif kind == "PID":
-            kw = dict(h=1e-2, controller=gj.PIDController(knob, knob))
+        if kind == "uniform":
+            return lambda q0, p0: uniform(knob, q0, p0)
+        if kind.startswith("TimeTransform"):
+            s = kepler_density(q0) if kind.endswith("r^1.5") else None
+            kw = dict(h=knob, controller=gj.TimeTransform(s))
         else:
-            kw = dict(h=knob, save_at=jnp.asarray([T]))
+            kw = dict(h=1e-2, controller=gj.PIDController(knob, knob))
         sol = gj.integrate(H, q0, p0, method=method, t1=T, max_steps=max_steps, dense=True, error_estimate=False, **kw)
         q, p = sol.dense.view(sol.dense.z)
         H0 = H(q0, p0)
@@ -316,6 +333,7 @@ def long_runs(orbits, quick):
     method = gauss(4)
     knobs = {
         "TimeTransform": (0.8, 0.4, 0.2),
+        "TimeTransform s = r^1.5": (0.8, 0.4, 0.2),
         "PID": (1e-6, 1e-8, 1e-10),
         "uniform": (2e-2, 1e-2, 5e-3, 2.5e-3),
     }
@@ -323,12 +341,17 @@ def long_runs(orbits, quick):
         knobs = {k: v[::2] for k, v in knobs.items()}
     per_orbit = {"TimeTransform": 25 / min(knobs["TimeTransform"]), "PID": 600,
                  "uniform": 2 * np.pi / min(knobs["uniform"])}
+    per_orbit["TimeTransform s = r^1.5"] = per_orbit["TimeTransform"]
     records, curves = [], {}
     for kind, values in knobs.items():
         max_steps = int(per_orbit[kind] * orbits * 1.1) + 64
         run = energy_run(kind, method, H, q0, p0, T, max_steps)
-        compile_s, call = compiled(run, jnp.asarray(values[0]))
+        if kind != "uniform":  # one program for every knob
+            compile_s, call = compiled(run, jnp.asarray(values[0]))
         for knob in values:
+            if kind == "uniform":  # the number of steps is static
+                compile_s, fixed = compiled(run(knob), q0, p0)
+                call = lambda _: fixed(q0, p0)
             t0 = time.perf_counter()  # long runs: one timed call
             dH, t, steps, status, newton = jax.block_until_ready(call(jnp.asarray(knob)))
             run_s = time.perf_counter() - t0
@@ -351,25 +374,25 @@ def long_runs(orbits, quick):
                   f"(compile {compile_s:.1f} s)", flush=True)
     summary = []
     for rec in records:
-        if rec["kind"] != "TimeTransform":
+        if not rec["kind"].startswith("TimeTransform"):
             continue
         uni = [dict(error=r["max_energy_error"], run_s=r["run_s"], steps=r["steps"]) for r in records
                if r["kind"] == "uniform"]
         cost = cost_at(uni, rec["max_energy_error"])
         steps = cost_at(uni, rec["max_energy_error"], "steps")
-        summary.append(dict(h=rec["knob"], max_energy_error=rec["max_energy_error"], run_s=rec["run_s"],
+        summary.append(dict(kind=rec["kind"], h=rec["knob"], max_energy_error=rec["max_energy_error"], run_s=rec["run_s"],
                             steps=rec["steps"], uniform_run_s=cost, uniform_steps=steps,
                             ratio=None if cost is None else rec["run_s"] / cost,
                             ratio_steps=None if steps is None else rec["steps"] / steps))
         uniform = "not reached" if cost is None else (f"{cost:.2f} s, ratio {rec['run_s'] / cost:.3f}; "
                                                       f"{steps:.0f} steps, ratio {rec['steps'] / steps:.3f}")
-        print(f"  TimeTransform h = {rec['knob']}: max|dH| {rec['max_energy_error']:.2e} in {rec['run_s']:.2f} s; "
+        print(f"  {rec['kind']} h = {rec['knob']}: max|dH| {rec['max_energy_error']:.2e} in {rec['run_s']:.2f} s; "
               f"uniform steps: {uniform}", flush=True)
     return dict(orbits=orbits, e=e, method="cG(4)+Gauss 4", runs=records, tt_vs_uniform=summary), curves
 
 
 def plot_energy(curves, path):
-    styles = {"TimeTransform": "-", "PID": "--", "uniform": ":"}
+    styles = {"TimeTransform": "-", "TimeTransform s = r^1.5": "-.", "PID": "--", "uniform": ":"}
     with figure(path, ncols=1, size=(8, 4.5)) as (ax,):
         for (kind, knob), per_orbit in curves.items():
             ax.semilogy(np.arange(1, per_orbit.size + 1), np.maximum(per_orbit, 1e-17), styles[kind], lw=1.0,
