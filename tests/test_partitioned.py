@@ -35,8 +35,8 @@ def iteration_matrices(method, H, q0, p0, h):
     plain = lambda Z: method.residual(H, q0, p0, Z, h)
     swept = lambda Z: _march.element_residual(H)(Z, (method, q0, p0, h, None))
     eye = np.eye(Z.size)
-    return [eye - np.asarray(jax.jacfwd(lambda z: R(z.reshape(Z.shape)).reshape(-1))(Z.reshape(-1)))
-            for R in (plain, swept)]
+    jacobians = jax.jit(lambda z: [jax.jacfwd(lambda z: R(z.reshape(Z.shape)).reshape(-1))(z) for R in (plain, swept)])
+    return [eye - np.asarray(J) for J in jacobians(Z.reshape(-1))]
 
 
 def radius(M):
@@ -72,13 +72,14 @@ def test_a_step_is_the_root_of_the_element_equations_for_non_separable_H():
     for method in METHODS:
         shape = method.initial_guess(q0, p0).shape
         R = lambda z: method.residual(H, q0, p0, z.reshape(shape), h).reshape(-1)
-        newton = jax.jit(lambda z: z - jnp.linalg.solve(jax.jacfwd(R)(z), R(z)))
-        z = jnp.zeros(np.prod(shape))
-        for _ in range(8):
-            z = newton(z)
-        Z = z.reshape(shape)
-        dq, dp = method.increment(H, q0, p0, Z, h)
-        q1, p1 = gj.step(H, q0, p0, method=method, h=h)
+
+        @jax.jit  # one compilation per method: 8 plain Newton steps on R, and the library's step
+        def newton_and_step(q0, p0):
+            z = jax.lax.fori_loop(0, 8, lambda _, z: z - jnp.linalg.solve(jax.jacfwd(R)(z), R(z)),
+                                  jnp.zeros(np.prod(shape)))
+            return method.increment(H, q0, p0, z.reshape(shape), h), gj.step(H, q0, p0, method=method, h=h)
+
+        (dq, dp), (q1, p1) = newton_and_step(q0, p0)
         # both are converged to round-off: a few ulps of the state
         np.testing.assert_allclose(q1, q0 + dq, rtol=0, atol=2e-15 * float(jnp.max(jnp.abs(q0))))
         np.testing.assert_allclose(p1, p0 + dp, rtol=0, atol=2e-15 * float(jnp.max(jnp.abs(p0))))
@@ -105,33 +106,40 @@ def fput_cg3(n_steps, **kwargs):
     return scene, method, sol
 
 
-def test_a_large_system_stops_at_the_round_off_floor_after_five_updates():
+@pytest.fixture(scope="module")
+def fput_dense():
+    """1000 elements of ``fput_cg3`` with dense output, shared by the two tests below."""
+    return fput_cg3(1000, dense=True)
+
+
+def test_a_large_system_stops_at_the_round_off_floor_after_five_updates(fput_dense):
     """cG(3) + Gauss 3 on the 64-mass chain (384 unknowns), h = 0.05: the fixed point's rate,
     judged by the last two updates of a block, stops most elements after four updates and the
     polish (``bench_solver.py``: about five per element), and the accepted unknowns are the
     root: 200 more sweeps move them by about 1.3 eps of their size on average, at most about
     2. Margins: one update per element; 3 eps."""
-    scene, method, sol = fput_cg3(1000, dense=True)
+    scene, method, sol = fput_dense
     assert float(sol.stats["num_newton_iterations"]) / 1000 <= 6.0
     fn, d = _march.element_residual(scene.H), scene.q0.shape[0]
     from_polynomial = jnp.asarray(np.linalg.pinv(np.asarray(_basis.antiderivative_matrix(method.k), float)))
 
     @jax.jit
+    @jax.vmap
     def distance_to_root(z, W):
         C, params = from_polynomial @ W, (method, z[:d], z[d:], 0.05, None)
         root = jax.lax.fori_loop(0, 200, lambda _, Z: Z - fn(Z, params), C)
         return jnp.sqrt(jnp.mean((C - root) ** 2) / jnp.mean(root**2)) / jnp.finfo(C.dtype).eps
 
-    distances = [float(distance_to_root(sol.dense.z[i], sol.dense.W[i])) for i in range(1, 1000, 3)]
-    assert max(distances) <= 3.0
+    distances = np.asarray(distance_to_root(sol.dense.z[1:1000:3], sol.dense.W[1:1000:3]))
+    assert distances.size == 333 and distances.max() <= 3.0
 
 
-def test_the_first_block_of_four_changes_no_number():
+def test_the_first_block_of_four_changes_no_number(fput_dense):
     """A system of more than 32 unknowns starts each element with a block of four updates, not
     two (``SolverOptions.first_block``): the check after two, which on the chain never accepts,
     is skipped (``bench_solver.py``). The iterates, the counts and the result are those of
     blocks of two, bitwise."""
-    _, _, first = fput_cg3(200)
-    _, _, pairs = fput_cg3(200, solver=gj.SolverOptions(first_block=2))
+    _, _, first = fput_dense
+    _, _, pairs = fput_cg3(1000, dense=True, solver=gj.SolverOptions(first_block=2))
     assert int(first.stats["num_newton_iterations"]) == int(pairs.stats["num_newton_iterations"])
     np.testing.assert_array_equal(np.concatenate([first.q, first.p]), np.concatenate([pairs.q, pairs.p]))
