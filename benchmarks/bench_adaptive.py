@@ -101,23 +101,29 @@ def three_body(q, p):
 def pythagorean_problem(T=5.0):
     """Burrau's problem: masses 3, 4, 5 at rest at (1, 3), (-2, -1), (1, -1). Its reference is
     cG(8)+Gauss 8 with the TimeTransform at two small steps (their difference and the
-    distance to SciPy DOP853 at rtol = atol = 1e-14 are recorded)."""
+    distance to SciPy DOP853 at rtol = atol = 1e-14 are recorded). Its close encounters
+    amplify a change of 1e-14 in q0 to ~1e-10 at T (recorded too), so in float64 no solver's
+    final state is known better than that: the reference's ``resolution`` is ten times the
+    largest of the three, and targets below it are not compared."""
     q0, p0 = jnp.asarray([1.0, 3.0, -2.0, -1.0, 1.0, -1.0]), jnp.zeros(6)
-    run = jax.jit(lambda h: gj.integrate(three_body, q0, p0, method=gauss(8), h=h, t1=T,
-                                         controller=gj.TimeTransform(), max_steps=MAX_STEPS, error_estimate=False))
+    run = jax.jit(lambda q0, h: gj.integrate(three_body, q0, p0, method=gauss(8), h=h, t1=T,
+                                             controller=gj.TimeTransform(), max_steps=MAX_STEPS, error_estimate=False))
     ends = []
-    for h in (2e-3, 1e-3):
-        sol = run(h)
+    for h, dq in ((2e-3, 0.0), (1e-3, 0.0), (1e-3, 1e-14)):
+        sol = run(q0.at[0].add(dq), h)
         assert int(sol.status) == 0, gj.status_message(sol.status)
         ends.append(np.concatenate([sol.q[-1], sol.p[-1]]))
     field = jax.jit(peers.hamiltonian_field(three_body))
     dop = scipy.integrate.solve_ivp(lambda t, z: np.asarray(field(jnp.asarray(z))), (0.0, T),
                                     np.concatenate([q0, p0]), method="DOP853", rtol=1e-14, atol=1e-14)
     check = dict(tt_h_vs_h2=float(np.max(np.abs(ends[0] - ends[1]))),
-                 dop853_1e14=float(np.max(np.abs(dop.y[:, -1] - ends[1]))))
+                 dop853_1e14=float(np.max(np.abs(dop.y[:, -1] - ends[1]))),
+                 q0_perturbed_1e14=float(np.max(np.abs(ends[2] - ends[1]))))
+    check["resolution"] = 10 * max(check.values())
     print(f"  Pythagorean reference: |TT(h) - TT(h/2)| = {check['tt_h_vs_h2']:.1e}, |DOP853 - TT| = "
-          f"{check['dop853_1e14']:.1e}")
-    return dict(H=three_body, q0=q0, p0=p0, T=T, z1=ends[1], reference=check,
+          f"{check['dop853_1e14']:.1e}, q0 + 1e-14: {check['q0_perturbed_1e14']:.1e}; "
+          f"resolution {check['resolution']:.1e}")
+    return dict(H=three_body, q0=q0, p0=p0, T=T, z1=ends[1], reference=check, resolution=check["resolution"],
                 tt_h=(0.32, 0.16, 0.08, 0.04, 0.02))
 
 
@@ -232,6 +238,11 @@ def ratios(records, problems):
     names = sorted({r["solver"] for r in records})
     for label in problems:
         for target in TARGETS:
+            if target < problems[label].get("resolution", 0.0):
+                table.append(dict(problem=label, target=target, below_resolution=True))
+                print(f"  {label:22s} error {target:.0e}: below the reference's resolution "
+                      f"{problems[label]['resolution']:.0e}", flush=True)
+                continue
             row = dict(problem=label, target=target, run_s={}, steps={}, evaluations={})
             for name in names:
                 pts = [r for r in records if r["problem"] == label and r["solver"] == name]
@@ -352,9 +363,11 @@ def long_runs(orbits, quick):
             if kind == "uniform":  # the number of steps is static
                 compile_s, fixed = compiled(run(knob), q0, p0)
                 call = lambda _: fixed(q0, p0)
-            t0 = time.perf_counter()  # long runs: one timed call
-            dH, t, steps, status, newton = jax.block_until_ready(call(jnp.asarray(knob)))
-            run_s = time.perf_counter() - t0
+            run_s = np.inf
+            for _ in range(2):  # the best of two calls: a program's first call also allocates its buffers
+                t0 = time.perf_counter()
+                dH, t, steps, status, newton = jax.block_until_ready(call(jnp.asarray(knob)))
+                run_s = min(run_s, time.perf_counter() - t0)
             dH, t = np.abs(np.asarray(dH)), np.asarray(t)
             ok = np.isfinite(t)
             dH, t = dH[ok], t[ok]
