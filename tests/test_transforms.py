@@ -88,7 +88,7 @@ def test_gradient_equals_central_differences(argnum, name):
 def test_check_grads_forward_and_reverse():
     f = lambda w, h: loss(w, ARGS[1], h, Q0)
     # eps = 1e-6: the default 1e-4 leaves an O(eps^2) difference error of ~1e-5 here
-    check_grads(f, (ARGS[0], 0.1), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
+    check_grads(jax.jit(f), (ARGS[0], 0.1), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
 
 
 def test_derivatives_do_not_differentiate_the_newton_iterations():
