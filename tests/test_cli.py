@@ -84,8 +84,9 @@ def write(tmp_path, name, text):
     return str(path)
 
 
-def test_default_run_writes_trajectory_plots_and_summary(tmp_path):
-    done = galerkin_jax("galerkin_jax", "run", "--out", "out", cwd=tmp_path)
+def test_default_run_writes_trajectory_plots_and_summary_and_a_run_again_with_another_h_loads_the_cache(tmp_path):
+    cache = str(tmp_path / "cache")
+    done = galerkin_jax("galerkin_jax", "run", "--out", "out", cwd=tmp_path, cache=cache)
     assert done.returncode == 0, done.stderr
     stem = tmp_path / "out" / "kepler_cG3-gauss3"
     for suffix in (".npz", "_energy.png", "_orbit.png"):
@@ -110,20 +111,14 @@ def test_default_run_writes_trajectory_plots_and_summary(tmp_path):
     last = out.strip().splitlines()[-1]
     assert last.startswith(f"Look at {os.path.join('out', 'kepler_cG3-gauss3_energy.png')}: the energy error is ")
     assert "no drift. As expected: " in last and "symplectic" in last  # the numbers agree with the method
-
-
-def test_a_run_again_with_another_step_size_loads_its_programs_from_the_cache(tmp_path):
-    cache = str(tmp_path / "cache")
-    first = galerkin_jax("galerkin_jax", "run", "--steps", "200", "--out", "out", cwd=tmp_path, cache=cache)
-    assert first.returncode == 0, first.stderr
+    # the same run again with another step size loads its programs from the cache
     entries = sorted(os.listdir(cache))
     assert len(entries) >= 2  # the integration and the plots' programs (24 measured for the default run)
-    again = galerkin_jax("galerkin_jax", "run", "--steps", "200", "--step-size", "0.04", "--out", "out", cwd=tmp_path,
-                         cache=cache)
+    again = galerkin_jax("galerkin_jax", "run", "--step-size", "0.04", "--out", "out", cwd=tmp_path, cache=cache)
     assert again.returncode == 0, again.stderr
     assert sorted(os.listdir(cache)) == entries  # h is an argument of the programs: nothing new to compile
     energy = lambda done: next(line for line in done.stdout.splitlines() if line.startswith("energy"))
-    assert energy(again) != energy(first)  # ... and it did run with the new h
+    assert energy(again) != energy(done)  # ... and it did run with the new h
 
 
 def test_the_cache_defaults_to_the_user_cache_folder_and_an_empty_variable_turns_it_off():

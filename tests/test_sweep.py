@@ -34,10 +34,10 @@ def test_sweep_of_64_configurations_equals_one_by_one_runs():
     # the batch runs, per element, as many iterations as its slowest member
     assert int(result.batch_newton_iterations[0]) >= int(result.num_newton_iterations.max())
     rows = [(m, h, s) for m in methods for h in STEPS for s in STATES]
+    along = jax.jit(lambda q, p: (jax.vmap(H)(q, p), jax.vmap(ANGULAR["L"])(q, p)))
     for i, (method, h, (q0, p0)) in enumerate(rows):
         sol = gj.integrate(H, q0, p0, method=method, h=h, n_steps=N_STEPS)  # the unpadded rule
-        energy = jax.vmap(H)(sol.q, sol.p)
-        L = jax.vmap(ANGULAR["L"])(sol.q, sol.p)
+        energy, L = along(sol.q, sol.p)
         # one solver: a member of the batch runs the iteration of the run alone, with its own
         # matrices and stops, also where it is one of the stragglers the batch (64 = 8 x
         # STRAGGLERS members) gathers apart; measured bitwise equal, a few ulps allowed for how
@@ -96,10 +96,11 @@ def test_gradient_of_a_sweep_diagnostic_equals_central_differences():
         return jnp.sum(result.q[:, 0])
 
     w = jnp.array([0.45, 0.55])
-    grad = jax.grad(loss)(w)
+    value_and_grad = jax.jit(jax.value_and_grad(loss))  # one compiled program for the gradient and the values
+    grad = value_and_grad(w)[1]
     for i in range(2):
         e = jnp.zeros(2).at[i].set(1e-6)
-        fd = (loss(w + e) - loss(w - e)) / 2e-6
+        fd = (value_and_grad(w + e)[0] - value_and_grad(w - e)[0]) / 2e-6
         assert float(grad[i]) == pytest.approx(float(fd), rel=1e-6)
 
 
@@ -159,7 +160,7 @@ def test_sweep_gradients_pass_check_grads_in_forward_and_reverse_mode():
 
     args = (jnp.array([0.2, 0.5, 0.9]), jnp.array([0.3, 0.4, 0.3]), jnp.asarray(0.02), Q0, P0, jnp.asarray(1.0))
     # eps = 1e-6: second-order differences leave ~1e-12 truncation, ~1e-10 round-off
-    check_grads(loss, args, order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
+    check_grads(jax.jit(loss), args, order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
 
 
 def test_sweep_converges_at_huge_h_omega_and_keeps_theorem_3_1():
@@ -225,7 +226,13 @@ def test_a_failed_member_costs_no_more_iterations_and_no_nan_gradients():
                              p0=jnp.ones((B, 1)), h=jnp.asarray(steps), args=jnp.full(B, c))
         return gj.sweep(H_c, configs, n_steps=50)
 
-    mixed, alone = run(1.0, [0.001, 1.0]), run(1.0, [0.001])
+    def loss(c, steps):
+        result = run(c, steps)
+        return jnp.sum(jnp.where((result.status == 0)[:, None], result.q, 0.0)), result
+
+    # one compiled program per batch: the runs come with the gradients
+    with_failure, mixed = jax.grad(loss, has_aux=True)(1.0, [0.001, 1.0])
+    without, alone = jax.grad(loss, has_aux=True)(1.0, [0.001])
     assert int(mixed.status[0]) == 0 and int(mixed.status[1]) != 0
     # the batch waits for the failing member only in the elements up to its failure: at most
     # its own iterations more than the healthy member alone (50 elements would cost >= 100)
@@ -233,13 +240,6 @@ def test_a_failed_member_costs_no_more_iterations_and_no_nan_gradients():
     assert int(alone.batch_newton_iterations[0]) <= int(mixed.batch_newton_iterations[0])
     assert int(mixed.batch_newton_iterations[0]) <= int(alone.batch_newton_iterations[0]) + failed_cost
     assert failed_cost < int(mixed.num_newton_iterations[0]) / 2
-
-    def loss(c, steps):
-        result = run(c, steps)
-        return jnp.sum(jnp.where((result.status == 0)[:, None], result.q, 0.0))
-
-    with_failure = jax.grad(loss)(1.0, [0.001, 0.002, 1.0])
-    without = jax.grad(loss)(1.0, [0.001, 0.002])
     assert np.isfinite(float(with_failure))
     assert float(with_failure) == pytest.approx(float(without), rel=1e-12)
 

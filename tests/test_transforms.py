@@ -1,5 +1,7 @@
 """jit / vmap / grad through step and integrate; gradients by the implicit function theorem."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -60,9 +62,16 @@ def loss(weights, points, h, q0):
 ARGS = (jnp.array([0.3, 0.4, 0.3]), jnp.array([0.15, 0.5, 0.85]), 0.1, Q0)
 
 
+@functools.lru_cache(maxsize=None)
+def gradient():
+    """The gradient of ``loss`` with respect to all four arguments: one compiled program for
+    the four tests that read it."""
+    return jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))(*ARGS)
+
+
 @pytest.mark.parametrize("argnum, name", [(0, "weights"), (1, "points"), (2, "h"), (3, "q0")])
 def test_gradient_equals_central_differences(argnum, name):
-    grad = np.atleast_1d(jax.grad(loss, argnums=argnum)(*ARGS))
+    grad = np.atleast_1d(gradient()[argnum])
     x = np.atleast_1d(np.asarray(ARGS[argnum], dtype=float))
     eps = 1e-6  # central differences: truncation ~ eps^2 ~ 1e-12, round-off ~ 1e-16 / eps ~ 1e-10
     for i in range(x.size):
@@ -79,7 +88,7 @@ def test_gradient_equals_central_differences(argnum, name):
 def test_check_grads_forward_and_reverse():
     f = lambda w, h: loss(w, ARGS[1], h, Q0)
     # eps = 1e-6: the default 1e-4 leaves an O(eps^2) difference error of ~1e-5 here
-    check_grads(f, (ARGS[0], 0.1), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
+    check_grads(jax.jit(f), (ARGS[0], 0.1), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
 
 
 def test_derivatives_do_not_differentiate_the_newton_iterations():
@@ -91,18 +100,6 @@ def test_derivatives_do_not_differentiate_the_newton_iterations():
     assert "while" not in str(jax.make_jaxpr(tangent)(Q0))
 
 
-def test_gradient_through_a_long_run_with_checkpointing_matches():
-    method = gj.CG(1, gj.gauss_legendre(2))
-
-    def run(q0, checkpoint):
-        sol = gj.integrate(H, q0, P0, method=method, h=0.05, n_steps=200, save_every=20, checkpoint=checkpoint)
-        return jnp.sum(sol.q[-1] ** 2)
-
-    g_plain = jax.grad(run)(Q0, False)
-    g_checkpointed = jax.grad(run)(Q0, True)
-    np.testing.assert_allclose(g_checkpointed, g_plain, rtol=1e-13)
-
-
 def test_integrate_under_jit_equals_eager():
     method = gj.DG(2, gj.gauss_legendre(3))
     jitted = jax.jit(lambda q0: gj.integrate(H, q0, P0, method=method, h=0.1, n_steps=10).q)(Q0)
@@ -110,18 +107,23 @@ def test_integrate_under_jit_equals_eager():
     np.testing.assert_allclose(jitted, eager, rtol=0, atol=1e-15)
 
 
-def test_checkpointed_gradient_memory_grows_like_the_number_of_blocks():
-    """Compiled temporary memory: plain reverse mode stores every element (x4 for 4x the steps);
+def test_checkpointed_gradient_equals_the_plain_one_and_its_memory_grows_like_the_number_of_blocks():
+    """The same gradient with and without checkpointing over 2000 elements; and compiled
+    temporary memory: plain reverse mode stores every element (x4 for 4x the steps);
     checkpointed blocks of sqrt(N) elements store ~sqrt(N) states (x2)."""
     method = gj.CG(1, gj.gauss_legendre(2))
 
-    def temp_bytes(n_steps, block, checkpoint):
+    def compiled(n_steps, block, checkpoint):
         loss = lambda q0: jnp.sum(gj.integrate(H, q0, P0, method=method, h=0.01, n_steps=n_steps, save_every=block,
                                                checkpoint=checkpoint).q[-1] ** 2)
-        return jax.jit(jax.grad(loss)).lower(Q0).compile().memory_analysis().temp_size_in_bytes
+        return jax.jit(jax.grad(loss)).lower(Q0).compile()
 
-    plain = temp_bytes(8000, 8000, False) / temp_bytes(2000, 2000, False)
-    checkpointed = temp_bytes(8000, 80, True) / temp_bytes(2000, 40, True)
+    programs = {key: compiled(*key) for key in ((2000, 2000, False), (8000, 8000, False), (2000, 40, True),
+                                                 (8000, 80, True))}
+    np.testing.assert_allclose(programs[2000, 40, True](Q0), programs[2000, 2000, False](Q0), rtol=1e-13)
+    temp_bytes = {key: program.memory_analysis().temp_size_in_bytes for key, program in programs.items()}
+    plain = temp_bytes[8000, 8000, False] / temp_bytes[2000, 2000, False]
+    checkpointed = temp_bytes[8000, 80, True] / temp_bytes[2000, 40, True]
     assert plain > 3.5 and checkpointed < 2.5
 
 
