@@ -12,9 +12,11 @@ Four parts, in one process, BLAS pinned to one thread:
      the ratio ours / best peer;
   b  the Pythagorean three-body problem (masses 3, 4, 5 at rest, G = 1), t in [0, 5], with its
      close encounters (steps from 1e-5 to 0.3): the same comparison against a reference
-     (cG(8)+Gauss 8 with the TimeTransform at a small step, checked against SciPy DOP853);
+     (cG(8)+Gauss 8 with the TimeTransform at a small step, checked against SciPy DOP853 and
+     against a change of 1e-14 in q0; no target below its resolution);
   c  Kepler e = 0.9 over ``--orbits`` orbits (default 1000; 100 with --quick), cG(4)+Gauss 4
-     with the TimeTransform, the PIDController and uniform steps: the maximum energy error
+     with the TimeTransform (its default s, and Kepler's own s = (r / r0)^(3/2)), the
+     PIDController and uniform steps (fixed steps, every state saved): the maximum energy error
      over the nodes against run time, the first quarter's against the last quarter's, and the
      uniform cost at the TimeTransform's energy error;
   d  the share of the controller's estimate (``embedded_error``) in a step: the PID run again
