@@ -9,6 +9,7 @@ import time
 import timeit
 
 import jax
+import numpy as np
 
 RESULTS = pathlib.Path(__file__).parent / "results"
 
@@ -41,6 +42,14 @@ def write(name, results):
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps({"machine": machine(), **results}, indent=2))
     print(f"wrote {path}")
+
+
+def energy_quarters(t, dH, T):
+    """The largest |dH| over the nodes (times t) of a run to T, in its first and in its last
+    quarter, and their ratio (a drift shows as a ratio well above 1)."""
+    first, last = (float(np.max(dH[(t >= a * T / 4) & (t <= (a + 1) * T / 4)])) for a in (0, 3))
+    return dict(max_energy_error=float(np.max(dH)), first_quarter=first, last_quarter=last,
+                last_over_first=last / first)
 
 
 def compiled(fn, *args):

@@ -50,7 +50,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import _peers as peers  # noqa: E402
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, best_time, compiled, figure, write  # noqa: E402
+from _common import RESULTS, best_time, compiled, energy_quarters, figure, write  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
 from galerkin_jax import _adaptive as adaptive  # noqa: E402
 from galerkin_jax._controllers import embedded_error  # noqa: E402
@@ -373,11 +373,9 @@ def long_runs(orbits, quick):
             dH, t = np.abs(np.asarray(dH)), np.asarray(t)
             ok = np.isfinite(t)
             dH, t = dH[ok], t[ok]
-            quarter = [np.max(dH[(t >= a * T / 4) & (t <= (a + 1) * T / 4)]) for a in (0, 3)]
             rec = dict(kind=kind, knob=knob, status=int(status), steps=int(steps), newton_iterations=int(newton),
                        compile_s=compile_s, run_s=run_s, us_per_step=1e6 * run_s / int(steps),
-                       max_energy_error=float(np.max(dH)), first_quarter=float(quarter[0]),
-                       last_quarter=float(quarter[1]), last_over_first=float(quarter[1] / quarter[0]))
+                       **energy_quarters(t, dH, T))
             records.append(rec)
             orbit = np.minimum((t / (2 * np.pi)).astype(int), orbits - 1)
             per_orbit_max = np.zeros(orbits)

@@ -32,7 +32,7 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import galerkin_jax as gj  # noqa: E402
-from _common import write  # noqa: E402
+from _common import energy_quarters, write  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
 
 METHOD = gj.CG(4, gj.gauss_legendre(4))
@@ -49,10 +49,7 @@ def problem(e, orbits):
 
 def quarters(t, dH, T):
     ok = np.isfinite(t) & np.isfinite(dH)
-    t, dH = t[ok], np.abs(dH[ok])
-    first, last = (np.max(dH[(t >= a * T / 4) & (t <= (a + 1) * T / 4)]) for a in (0, 3))
-    return dict(max_energy_error=float(np.max(dH)), first_quarter=float(first), last_quarter=float(last),
-                last_over_first=float(last / first))
+    return energy_quarters(t[ok], np.abs(dH[ok]), T)
 
 
 def time_transform(H, q0, p0, T, sigma, eps):

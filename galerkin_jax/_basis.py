@@ -96,10 +96,16 @@ def shift_matrix(n, subtract_end=False):
 
     # exact: Gauss with n points integrates the degree 2n - 2 products
     """
+    x, _ = npleg.leggauss(n)
+    return test_scale(n)[:, None] * (_moments(n) @ (npleg.legvander(x + 2.0, n - 1) - (1.0 if subtract_end else 0.0)))
+
+
+def _moments(n):
+    """w_g P_i(x_g) / 2, shape ``(n, n)``: applied to a polynomial's values at the n-point Gauss
+    nodes x_g, int_0^1 P_i(2a - 1) times it (exact up to degree 2n - 1 - i); times 2i + 1, its
+    Legendre coefficients."""
     x, w = npleg.leggauss(n)
-    ahead = npleg.legvander(x + 2.0, n - 1) - (1.0 if subtract_end else 0.0)
-    here = npleg.legvander(x, n - 1)
-    return test_scale(n)[:, None] * ((here * (w / 2.0)[:, None]).T @ ahead)
+    return (npleg.legvander(x, n - 1) * (w / 2.0)[:, None]).T
 
 
 def continuation(n, ratio=None, subtract_end=False):
@@ -108,8 +114,7 @@ def continuation(n, ratio=None, subtract_end=False):
     (P_j(1 + 2 ratio a) - s_j) da, by the same n-point Gauss rule (exact for any ratio)."""
     if ratio is None:
         return shift_matrix(n, subtract_end)
-    x, w = npleg.leggauss(n)
+    x, _ = npleg.leggauss(n)
     ratio = jnp.asarray(ratio)
     ahead = legendre_values(1.0 + ratio * jnp.asarray((x + 1.0) / 2.0, ratio.dtype), n) - (1.0 if subtract_end else 0.0)
-    here = jnp.asarray(test_scale(n)[:, None] * (npleg.legvander(x, n - 1) * (w / 2.0)[:, None]).T, ratio.dtype)
-    return here @ ahead
+    return jnp.asarray(test_scale(n)[:, None], ratio.dtype) * (jnp.asarray(_moments(n), ratio.dtype) @ ahead)

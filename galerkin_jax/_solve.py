@@ -212,9 +212,14 @@ def initial_matrix(Z, options):
     dense = n <= solver.dense_limit
     newton = 1 if dense and n <= solver.small else 0
     inverse = jnp.zeros((n, n), Z.dtype) if dense else None
-    has_newton = dense or options.krylov or not options.fixed_point
-    reference = (jnp.zeros_like(Z), jnp.zeros_like(Z)) if has_newton else None
+    reference = (jnp.zeros_like(Z), jnp.zeros_like(Z)) if dense or _krylov(options) else None
     return Matrix.of(newton if options.fixed_point else ALWAYS, True, inverse, reference)
+
+
+def _krylov(options):
+    """Without a dense matrix, the Newton phase is Newton-Krylov where it exists: with
+    ``krylov=True``, or for a method without a fixed point."""
+    return options.krylov or not options.fixed_point
 
 
 def _matvec(K, r):
@@ -647,7 +652,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
     """
     B, n, dtype = Z_pred.shape[0], Z_pred[0].size, Z_pred.dtype
     solver = options.solver
-    krylov = matrix.inverse is None and (options.krylov or not options.fixed_point)
+    krylov = matrix.inverse is None and _krylov(options)
     problem = _Problem(fn, params, scale, solver, matrix.inverse is not None or krylov)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
     # the watchdog watches an element whose predictor is the constant guess (``first``):
