@@ -1,7 +1,7 @@
 """Adaptive steps (issue 22, item 9): galerkin_jax's PIDController and TimeTransform against
 diffrax Dopri8 + PID and Tsit5 + PID, and against uniform steps over long runs.
 
-    python benchmarks/bench_adaptive.py [--quick] [--only a b c d] [--orbits 1000]
+    python benchmarks/bench_adaptive.py [--quick] [--only a b c d] [--orbits 1000] [--e 0.9]
 
 Four parts, in one process, BLAS pinned to one thread:
   a  Kepler e = 0.9 and e = 0.99, 10 orbits from apocentre: work-precision (run time and steps
@@ -14,7 +14,7 @@ Four parts, in one process, BLAS pinned to one thread:
      close encounters (steps from 1e-5 to 0.3): the same comparison against a reference
      (cG(8)+Gauss 8 with the TimeTransform at a small step, checked against SciPy DOP853 and
      against a change of 1e-14 in q0; no target below its resolution);
-  c  Kepler e = 0.9 over ``--orbits`` orbits (default 1000; 100 with --quick), cG(4)+Gauss 4
+  c  Kepler e = 0.9 (``--e 0.99``) over ``--orbits`` orbits (default 1000; 100 with --quick), cG(4)+Gauss 4
      with the TimeTransform (its default s, and Kepler's own s = (r / r0)^(3/2)), the
      PIDController and uniform steps (fixed steps, every state saved): the maximum energy error
      over the nodes against run time, the first quarter's against the last quarter's, and the
@@ -339,20 +339,29 @@ def energy_run(kind, method, H, q0, p0, T, max_steps):
     return run
 
 
-def long_runs(orbits, quick):
-    e = 0.9
+# part c's knobs per eccentricity: h in tau, tolerances, uniform h. At e = 0.99 the pericentre's
+# time scale r^(3/2) is 30x shorter than at e = 0.9: uniform steps of the same accuracy would
+# take 30x as many (10^8 for 1000 orbits), so they stop at 2.5e-4 (25 million steps)
+LONG_KNOBS = {
+    0.9: {"TimeTransform": (0.8, 0.4, 0.2), "TimeTransform s = r^1.5": (0.8, 0.4, 0.2),
+          "PID": (1e-6, 1e-8, 1e-10), "uniform": (2e-2, 1e-2, 5e-3, 2.5e-3)},
+    0.99: {"TimeTransform": (1.6, 0.8, 0.4), "TimeTransform s = r^1.5": (1.6, 0.8, 0.4),
+           "PID": (1e-6, 1e-8, 1e-10), "uniform": (1e-3, 5e-4, 2.5e-4)},
+}
+# attempts per orbit the PID runs may take (the largest measured at 1e-10, with a margin)
+PID_PER_ORBIT = {0.9: 600, 0.99: 1500}
+
+
+def long_runs(orbits, quick, e=0.9):
     prob = kepler_problem(e, orbits)
     H, q0, p0, T = prob["H"], prob["q0"], prob["p0"], prob["T"]
     method = gauss(4)
-    knobs = {
-        "TimeTransform": (0.8, 0.4, 0.2),
-        "TimeTransform s = r^1.5": (0.8, 0.4, 0.2),
-        "PID": (1e-6, 1e-8, 1e-10),
-        "uniform": (2e-2, 1e-2, 5e-3, 2.5e-3),
-    }
+    knobs = LONG_KNOBS[e]
     if quick:
         knobs = {k: v[::2] for k, v in knobs.items()}
-    per_orbit = {"TimeTransform": 25 / min(knobs["TimeTransform"]), "PID": 600,
+    # TimeTransform: the tau period is r0^(3/2) times 4 K(2e / (1 + e)) / sqrt(1 + e) for
+    # s = (r / r0)^(3/2) (21.7 at e = 0.9, 32 at e = 0.99); 60 / h per orbit leaves room for the default s
+    per_orbit = {"TimeTransform": 60 / min(knobs["TimeTransform"]), "PID": PID_PER_ORBIT[e],
                  "uniform": 2 * np.pi / min(knobs["uniform"])}
     per_orbit["TimeTransform s = r^1.5"] = per_orbit["TimeTransform"]
     records, curves = [], {}
@@ -380,7 +389,12 @@ def long_runs(orbits, quick):
             orbit = np.minimum((t / (2 * np.pi)).astype(int), orbits - 1)
             per_orbit_max = np.zeros(orbits)
             np.maximum.at(per_orbit_max, orbit, dH)
-            rec["max_energy_error_per_orbit"] = per_orbit_max.tolist()
+            # the file keeps about 1000 points per curve, each the largest over a block of orbits
+            # (the figure has them all)
+            block = max(1, orbits // 1000)
+            rec["orbits_per_point"] = block
+            rec["max_energy_error_per_orbit"] = [float(np.max(per_orbit_max[i:i + block]))
+                                                 for i in range(0, orbits, block)]
             curves[(kind, knob)] = per_orbit_max
             print(f"  {kind:14s} knob {knob:7.0e}: status {rec['status']} steps {rec['steps']:8d} run {run_s:7.2f} s "
                   f"max|dH| {rec['max_energy_error']:.2e} last/first quarter {rec['last_over_first']:.2f} "
@@ -404,7 +418,7 @@ def long_runs(orbits, quick):
     return dict(orbits=orbits, e=e, method="cG(4)+Gauss 4", runs=records, tt_vs_uniform=summary), curves
 
 
-def plot_energy(curves, path):
+def plot_energy(curves, path, e):
     styles = {"TimeTransform": "-", "TimeTransform s = r^1.5": "-.", "PID": "--", "uniform": ":"}
     with figure(path, ncols=1, size=(8, 4.5)) as (ax,):
         for (kind, knob), per_orbit in curves.items():
@@ -412,7 +426,7 @@ def plot_energy(curves, path):
                         label=f"{kind} {knob:g}")
         ax.set_xlabel("orbit")
         ax.set_ylabel("max |H - H0| over the orbit's nodes")
-        ax.set_title("Kepler e = 0.9, cG(4)+Gauss 4")
+        ax.set_title(f"Kepler e = {e}, cG(4)+Gauss 4")
         ax.legend(fontsize=7, ncol=2)
 
 
@@ -502,6 +516,8 @@ def main():
     parser.add_argument("--quick", action="store_true", help="thinner sweeps, 100 orbits in part c (a smoke pass)")
     parser.add_argument("--only", nargs="+", choices=("a", "b", "c", "d"), default=("a", "b", "c", "d"))
     parser.add_argument("--orbits", type=int, default=None, help="orbits of part c (default 1000, --quick 100)")
+    parser.add_argument("--e", type=float, default=0.9, choices=sorted(LONG_KNOBS),
+                        help="eccentricity of part c (default 0.9)")
     parser.add_argument("--name", default=None)
     opts = parser.parse_args()
     suffix = ("_quick" if opts.quick else "") + ("" if len(opts.only) == 4 else "_" + "".join(opts.only))
@@ -522,9 +538,9 @@ def main():
         plot_work_precision(records, problems, RESULTS / f"{name}_work_precision.png")
     if "c" in opts.only:
         orbits = opts.orbits or (100 if opts.quick else 1000)
-        print(f"c: Kepler e = 0.9, {orbits} orbits", flush=True)
-        results["long"], curves = long_runs(orbits, opts.quick)
-        plot_energy(curves, RESULTS / f"{name}_energy.png")
+        print(f"c: Kepler e = {opts.e}, {orbits} orbits", flush=True)
+        results["long"], curves = long_runs(orbits, opts.quick, opts.e)
+        plot_energy(curves, RESULTS / f"{name}_energy.png", opts.e)
     if "d" in opts.only:
         print("d: the estimate's share of a step", flush=True)
         results["estimate_share"] = [
