@@ -1,5 +1,6 @@
 """Problems with exact or independent reference solutions, and order fitting."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -90,3 +91,28 @@ def collocation_tableau(nodes):
         a[:, j] = antiderivative(nodes) - antiderivative(0.0)
         b[j] = antiderivative(1.0) - antiderivative(0.0)
     return a, b
+
+
+def check_first_derivatives(f, args, *, eps, atol, rtol, seed=0):
+    """``jax.test_util.check_grads(f, args, order=1, modes=("fwd", "rev"))`` with one compiled
+    program: the value, the forward-mode product J t and the reverse-mode product J^T c (the
+    transpose of the same linearization, as ``jax.vjp`` computes it) for random t and c. J t
+    must equal the central difference (f(x + eps t) - f(x - eps t)) / (2 eps), whose two values
+    come from the same program, and <J^T c, t> must equal <c, that difference>."""
+    rng = np.random.RandomState(seed)
+    args = tuple(jnp.asarray(x, jnp.asarray(x).dtype) for x in args)  # not weakly typed, as x + eps t
+    tangent = tuple(jnp.asarray(rng.standard_normal(x.shape), x.dtype) for x in args)
+    out = jax.eval_shape(f, *args)
+    cotangent = jnp.asarray(rng.standard_normal(out.shape), out.dtype)
+
+    @jax.jit
+    def derivatives(args):
+        value, linear = jax.linearize(f, *args)
+        return value, linear(*tangent), jax.linear_transpose(linear, *args)(cotangent)
+
+    _, forward, reverse = derivatives(args)
+    shifted = lambda sign: derivatives(tuple(x + sign * eps * t for x, t in zip(args, tangent)))[0]
+    numerical = (shifted(1.0) - shifted(-1.0)) / (2 * eps)
+    np.testing.assert_allclose(forward, numerical, atol=atol, rtol=rtol, err_msg="forward mode")
+    projected = sum(jnp.vdot(c, t) for c, t in zip(reverse, tangent))
+    np.testing.assert_allclose(projected, jnp.vdot(cotangent, numerical), atol=atol, rtol=rtol, err_msg="reverse mode")

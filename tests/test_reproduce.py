@@ -1,4 +1,20 @@
-"""``galerkin_jax.reproduce``: the files it writes, the table it returns, the [Tang] numbers."""
+"""``galerkin_jax.reproduce``: the files it writes, the table it returns, the [Tang] numbers.
+
+[GBS, Table 5.1], cell by cell (the tests after ``PAPER``): the library's measured table
+(``reproduce.table51``) against the paper's cells, written out here.
+
+C: relative change at round-off (< 1e-12) throughout; D: strictly monotone decrease; NC:
+neither. The paper's NC ("nonconservation") is asserted as "no run conserves"; C* as "C with
+the modified midpoint rule, not with the plain midpoint rule". Each Hooke cell is measured
+at h = 1 (Figs. 4.1, 4.4) and h = 0.1 (Figs. 4.2, 4.5), 200 steps; each quartic cell
+(V = c (r^2 - 1)^2 / 2) at h = 0.01, 2000 steps (Figs. 4.6, 4.7).
+
+Measured for the boxes the paper leaves empty (arbitrary potential, symmetric N_q > 1, H):
+- cG(1): C with Gauss 2, Gauss 3 and Lobatto 3 (relative change ~1e-14): DH is cubic, these
+  rules integrate it exactly and Theorem 3.1 applies; NC with the trapezoid rule (1e-1).
+- dG(1): NC with every multi-point rule (|dH/H| ~ 0.75, not monotone).
+Also measured: dG(1)'s |L| with N_q > 1 on the quartic scene (paper: NC) decays monotonically (D).
+"""
 
 import numpy as np
 import pytest
@@ -11,8 +27,10 @@ FIGURES = ["fig4_1", "fig4_2", "fig4_3", "fig4_4", "fig4_5", "fig4_6", "fig4_7",
 
 
 @pytest.fixture(scope="module")
-def result(reproduced):
-    return reproduced  # once per test run, shared with test_table51.py (``conftest.reproduced``)
+def result(tmp_path_factory):
+    """``reproduce.reproduce(folder, quick=True)``, once for the module: every test of the
+    table and of the figures reads it (one module, so one pytest-xdist worker computes it)."""
+    return reproduce.reproduce(tmp_path_factory.mktemp("reproduce"), quick=True)
 
 
 def test_writes_every_figure_and_the_table(result):
@@ -30,7 +48,7 @@ def test_writes_every_figure_and_the_table(result):
 
 
 def test_the_returned_table_agrees_with_every_filled_cell_of_the_paper(result):
-    """Cell by cell in test_table51.py; here: every box the paper fills agrees, none is left out."""
+    """Cell by cell below; here: every box the paper fills agrees, none is left out."""
     table = result["table51"]
     filled = [cell for cell in table.cells if cell.paper is not None]
     assert len(table.cells) == 20 and len(filled) == 18
@@ -83,3 +101,55 @@ def test_bad_arguments(tmp_path):
         reproduce.reproduce(tmp_path, quick="yes")
     with pytest.raises(TypeError, match="folder"):
         reproduce.reproduce(3.5, quick=True)
+
+
+# [GBS, Table 5.1] as printed; None: the box is empty.
+COLUMNS = ("Hooke: exact", "Hooke: N_q = 1", "Hooke: 1 < N_q", "arbitrary V: N_q = 1", "arbitrary V: 1 < N_q")
+PAPER = {
+    ("cG(1)", "H"): ("C", "C", "C", "C*", None),  # Props. 4.1, 4.2 (Cor. 4.1), 4.6
+    ("cG(1)", "L"): ("C", "C", "C", "C", "NC"),  # Cors. 4.3, 4.4, 4.7, 4.10
+    ("dG(1)", "H"): ("D", "C", "D", "C*", None),  # Props. 4.3, 4.4 (Cor. 4.2), Cor. 4.9
+    ("dG(1)", "L"): ("D", "C", "D", "C", "NC"),  # Cors. 4.5, 4.6, 4.8, 4.11
+}
+CELLS = [(m, q, column, paper) for (m, q), row in PAPER.items() for column, paper in zip(COLUMNS, row)]
+FILLED = [cell for cell in CELLS if cell[3] is not None]
+
+
+@pytest.fixture(scope="module")
+def table(result):
+    return result["table51"]
+
+
+@pytest.mark.parametrize("method, quantity, column, paper", FILLED, ids=[f"{m}-{q}-{c}" for m, q, c, _ in FILLED])
+def test_every_filled_cell_is_the_papers(table, method, quantity, column, paper):
+    measured = table.cell(method, quantity, column).measured
+    assert measured, "a cell without runs"
+    if paper in ("C", "D"):
+        assert set(measured.values()) == {paper}, measured
+    elif paper == "NC":
+        assert "C" not in measured.values(), measured
+    else:  # C*: conserved only with the modified midpoint rule (Prop. 4.6, Notation 4.2)
+        assert measured == {"modified midpoint": "C", "midpoint": "NC"}
+
+
+def test_the_empty_cells_as_measured(table):
+    """What the paper leaves open, pinned down so that a change is noticed (module docstring)."""
+    cg = table.cell("cG(1)", "H", "arbitrary V: 1 < N_q").measured
+    assert cg == {"gauss2": "C", "gauss3": "C", "lobatto3": "C", "trapezoid": "NC"}  # exact quadrature of a cubic DH
+    assert set(table.cell("dG(1)", "H", "arbitrary V: 1 < N_q").measured.values()) == {"NC"}
+    assert set(table.cell("dG(1)", "L", "arbitrary V: 1 < N_q").measured.values()) == {"D"}  # paper: NC
+
+
+def test_the_library_copy_of_the_paper_and_the_rendering(table):
+    """The table knows which boxes the paper fills, and the markdown marks the empty ones."""
+    assert tuple(reproduce.COLUMNS) == COLUMNS
+    assert reproduce.PAPER_TABLE51 == PAPER
+    assert [(c.method, c.quantity, c.column, c.paper) for c in table.cells] == CELLS
+    markdown = table.markdown()
+    for method, quantity in PAPER:
+        assert f"| {method} {quantity} |" in markdown
+    assert markdown.count("*empty in the paper*") == 2
+    assert "**paper" not in markdown  # no disagreement flagged
+    assert table.cell("dG(1)", "L", "arbitrary V: 1 < N_q").render() == "NC (measured D)"
+    assert table.cell("cG(1)", "H", "arbitrary V: N_q = 1").render() == "C*"
+    assert "(empty): C (gauss2, gauss3, lobatto3), NC (trapezoid)" in table.text()

@@ -6,7 +6,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 
 import galerkin_jax as gj
 import helpers
@@ -59,19 +58,22 @@ def loss(weights, points, h, q0):
     return jnp.sum(final_state(method, h, q0) ** 2)
 
 
-ARGS = (jnp.array([0.3, 0.4, 0.3]), jnp.array([0.15, 0.5, 0.85]), 0.1, Q0)
+# h a float64 array, not a weakly typed Python float: the differences' arguments then have
+# the types of ARGS (no second compilation)
+ARGS = (jnp.array([0.3, 0.4, 0.3]), jnp.array([0.15, 0.5, 0.85]), jnp.asarray(0.1, jnp.float64), Q0)
 
 
 @functools.lru_cache(maxsize=None)
-def gradient():
-    """The gradient of ``loss`` with respect to all four arguments: one compiled program for
-    the four tests that read it."""
-    return jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))(*ARGS)
+def value_and_gradient():
+    """``loss`` and its gradient with respect to all four arguments: one compiled program for
+    the four tests that read it, the values of their central differences included."""
+    return jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3)))
 
 
 @pytest.mark.parametrize("argnum, name", [(0, "weights"), (1, "points"), (2, "h"), (3, "q0")])
 def test_gradient_equals_central_differences(argnum, name):
-    grad = np.atleast_1d(gradient()[argnum])
+    value_and_grad = value_and_gradient()
+    grad = np.atleast_1d(value_and_grad(*ARGS)[1][argnum])
     x = np.atleast_1d(np.asarray(ARGS[argnum], dtype=float))
     eps = 1e-6  # central differences: truncation ~ eps^2 ~ 1e-12, round-off ~ 1e-16 / eps ~ 1e-10
     for i in range(x.size):
@@ -81,14 +83,16 @@ def test_gradient_equals_central_differences(argnum, name):
         shape = np.shape(ARGS[argnum])
         args_p = list(ARGS); args_p[argnum] = jnp.asarray(plus.reshape(shape))
         args_m = list(ARGS); args_m[argnum] = jnp.asarray(minus.reshape(shape))
-        fd = (loss(*args_p) - loss(*args_m)) / (2 * eps)
+        fd = (value_and_grad(*args_p)[0] - value_and_grad(*args_m)[0]) / (2 * eps)
         assert grad[i] == pytest.approx(float(fd), rel=1e-6, abs=1e-8), name
 
 
 def test_check_grads_forward_and_reverse():
+    """The checks of ``jax.test_util.check_grads`` (order 1, forward and reverse mode) in one
+    compiled program (``helpers.check_first_derivatives``)."""
     f = lambda w, h: loss(w, ARGS[1], h, Q0)
     # eps = 1e-6: the default 1e-4 leaves an O(eps^2) difference error of ~1e-5 here
-    check_grads(jax.jit(f), (ARGS[0], 0.1), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
+    helpers.check_first_derivatives(f, (ARGS[0], 0.1), atol=1e-6, rtol=1e-6, eps=1e-6)
 
 
 def test_derivatives_do_not_differentiate_the_newton_iterations():
@@ -138,6 +142,7 @@ def test_a_failed_member_of_a_vmapped_integrate_leaves_the_others_gradient_finit
         sol = jax.vmap(run)(jnp.asarray(steps))
         return jnp.sum(jnp.where((sol.status == 0)[:, None], sol.q[:, -1], 0.0))
 
-    with_failure, without = jax.grad(loss)(1.0, [0.001, 0.002, 1.0]), jax.grad(loss)(1.0, [0.001, 0.002])
+    grad = jax.jit(jax.grad(loss), static_argnums=1)  # one compiled program per batch size
+    with_failure, without = grad(1.0, (0.001, 0.002, 1.0)), grad(1.0, (0.001, 0.002))
     assert np.isfinite(float(with_failure))
     assert float(with_failure) == pytest.approx(float(without), rel=1e-12)

@@ -15,8 +15,9 @@ KEPLER = helpers.kepler(0.5)
 SCENES = {"kepler": KEPLER, "pendulum": helpers.pendulum(), "non-separable": helpers.non_separable()}
 
 
-@pytest.mark.parametrize("scene", SCENES)
-@pytest.mark.parametrize("s", [1, 2, 3])
+# every s on the non-separable H (the general case); the separable scenes at s = 2
+@pytest.mark.parametrize("scene, s", [("non-separable", 1), ("non-separable", 2), ("non-separable", 3),
+                                      ("kepler", 2), ("pendulum", 2)])
 def test_galerkin_vi_is_symplectic(scene, s):
     """A^T J A = J for the exact step Jacobian (Corollary 2.1), with Gauss and Lobatto rules."""
     H, q0, p0 = SCENES[scene]
@@ -69,11 +70,16 @@ def test_galerkin_vi_has_nodal_order_2s(s, ns):
     assert helpers.fitted_order([T / n for n in ns], errors, floor=1e-12) == pytest.approx(2 * s, abs=0.1)
 
 
+# jitted: one compiled program per shape instead of one per operation of an eager call
+antiderivatives = jax.jit(_basis.legendre_antiderivatives, static_argnums=1)
+values = jax.jit(_basis.legendre_values, static_argnums=1)
+
+
 def kernel_A(tau, sigma, s):
     """A_{tau,sigma} = sum_i int_0^tau l_i(x) dx l_i(sigma) (eq. (2.35), index corrected)."""
     scale = _basis.test_scale(s)
-    A = np.asarray(_basis.legendre_antiderivatives(jnp.asarray(tau), s))
-    P = np.asarray(_basis.legendre_values(jnp.asarray(sigma), s))
+    A = np.asarray(antiderivatives(jnp.asarray(tau), s))
+    P = np.asarray(values(jnp.asarray(sigma), s))
     return (A * scale) @ P.T
 
 
@@ -92,9 +98,9 @@ def test_element_satisfies_the_weak_form_and_the_cspkr_kernels():
     q1, p1, Z, _, _ = jax.jit(lambda q, p: solve_element(method, H, q, p, h, None, solver_options(method, 32, False)))(q0, p0)
     c, mu = np.split(np.asarray(Z), 2)
     alpha, w = np.asarray(rule.points), np.asarray(rule.weights)
-    Q = lambda t: np.asarray(q0) + np.asarray(_basis.legendre_antiderivatives(jnp.asarray(t), s)) @ c
-    P = lambda t: np.asarray(p0) + np.asarray(_basis.legendre_values(jnp.asarray(t), s)) @ mu
-    dHdq, dHdp = (np.asarray(x) for x in jax.vmap(jax.grad(H, argnums=(0, 1)))(jnp.asarray(Q(alpha)), jnp.asarray(P(alpha))))
+    Q = lambda t: np.asarray(q0) + np.asarray(antiderivatives(jnp.asarray(t), s)) @ c
+    P = lambda t: np.asarray(p0) + np.asarray(values(jnp.asarray(t), s)) @ mu
+    dHdq, dHdp = (np.asarray(x) for x in jax.jit(jax.vmap(jax.grad(H, argnums=(0, 1))))(jnp.asarray(Q(alpha)), jnp.asarray(P(alpha))))
     f, g = dHdp, -dHdq
     x, wx = np.polynomial.legendre.leggauss(12)  # exact for the polynomial terms
     x, wx = (x + 1) / 2, wx / 2
@@ -122,9 +128,10 @@ H_QUADRATIC = lambda q, p: 0.5 * p @ jnp.linalg.solve(M_MATRIX, p) + U(q)
 Q0, P0 = jnp.array([1.0, 0.2]), jnp.array([0.1, 0.8])
 
 
-@pytest.mark.parametrize("s", [1, 2, 3])
+@pytest.mark.parametrize("s", [1, 3])
 def test_lagrangian_vi_equals_galerkin_vi_for_quadratic_kinetic_energy(s):
-    """[Tang, Section 3]: identical (q_n, p_n) for L = qdot^T M qdot / 2 - U(q), M SPD non-diagonal."""
+    """[Tang, Section 3]: identical (q_n, p_n) for L = qdot^T M qdot / 2 - U(q), M SPD non-diagonal.
+    s = 2 on this L, M, U and initial state: ``reproduce.tang_equivalence`` (test_reproduce.py)."""
     rule = gj.gauss_legendre(s + 1)
     a = gj.integrate(H_QUADRATIC, Q0, P0, method=gj.GalerkinVI(s, rule), h=0.05, n_steps=200)
     b = gj.integrate(L_QUADRATIC, Q0, P0, method=gj.LagrangianVI(s, rule), h=0.05, n_steps=200)
