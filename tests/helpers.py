@@ -93,22 +93,30 @@ def collocation_tableau(nodes):
     return a, b
 
 
-def check_first_derivatives(f, args, *, eps, atol, rtol, seed=0):
-    """``jax.test_util.check_grads(f, args, order=1, modes=("fwd", "rev"))`` with one compiled
-    program: the value, the forward-mode product J t and the reverse-mode product J^T c (the
-    transpose of the same linearization, as ``jax.vjp`` computes it) for random t and c. J t
-    must equal the central difference (f(x + eps t) - f(x - eps t)) / (2 eps), whose two values
-    come from the same program, and <J^T c, t> must equal <c, that difference>."""
-    rng = np.random.RandomState(seed)
-    args = tuple(jnp.asarray(x, jnp.asarray(x).dtype) for x in args)  # not weakly typed, as x + eps t
-    tangent = tuple(jnp.asarray(rng.standard_normal(x.shape), x.dtype) for x in args)
-    out = jax.eval_shape(f, *args)
-    cotangent = jnp.asarray(rng.standard_normal(out.shape), out.dtype)
+def first_derivatives(f, tangent, cotangent):
+    """One compiled program ``args -> (f(*args), J tangent, J^T cotangent)``: the value, the
+    forward-mode product and the reverse-mode products (one per argument; the transpose of the
+    same linearization, as ``jax.vjp`` computes it). Difference quotients of the value come
+    from the same program."""
 
     @jax.jit
     def derivatives(args):
         value, linear = jax.linearize(f, *args)
         return value, linear(*tangent), jax.linear_transpose(linear, *args)(cotangent)
+
+    return derivatives
+
+
+def check_first_derivatives(f, args, *, eps, atol, rtol, seed=0):
+    """``jax.test_util.check_grads(f, args, order=1, modes=("fwd", "rev"))`` with one compiled
+    program (``first_derivatives``) for random t and c: J t must equal the central difference
+    (f(x + eps t) - f(x - eps t)) / (2 eps), and <J^T c, t> must equal <c, that difference>."""
+    rng = np.random.RandomState(seed)
+    args = tuple(jnp.asarray(x, jnp.asarray(x).dtype) for x in args)  # not weakly typed, as x + eps t
+    tangent = tuple(jnp.asarray(rng.standard_normal(x.shape), x.dtype) for x in args)
+    out = jax.eval_shape(f, *args)
+    cotangent = jnp.asarray(rng.standard_normal(out.shape), out.dtype)
+    derivatives = first_derivatives(f, tangent, cotangent)
 
     _, forward, reverse = derivatives(args)
     shifted = lambda sign: derivatives(tuple(x + sign * eps * t for x, t in zip(args, tangent)))[0]

@@ -228,18 +228,13 @@ def test_derivatives_through_a_controlled_run(controller):
         sol = gj.integrate(H, Q0.at[0].set(x), P0, method=CG4, h=0.05, t1=T, controller=controller, save_at=ts)
         return jnp.sum(sol.q[-1] ** 2) + sol.p[2, 1]
 
-    def derivatives(x):
-        """The value, the forward-mode tangent and the reverse-mode gradient (the transpose of
-        the same linearization, as ``jax.grad`` computes it): one compiled program, which the
-        difference quotient's values come from too."""
-        value, linear = jax.linearize(loss, x)
-        (grad,) = jax.linear_transpose(linear, x)(jnp.ones_like(value))
-        return value, linear(jnp.ones_like(x)), grad
-
-    derivatives = jax.jit(derivatives)
-    _, tangent, grad = derivatives(Q0[0])
+    # the value, the forward-mode tangent and the reverse-mode gradient from one compiled
+    # program, which the difference quotient's values come from too
+    x0 = Q0[0]
+    derivatives = helpers.first_derivatives(loss, (jnp.ones_like(x0),), jnp.ones_like(x0))
+    _, tangent, (grad,) = derivatives((x0,))
     eps = 1e-5
-    fd = (derivatives(Q0[0] + eps)[0] - derivatives(Q0[0] - eps)[0]) / (2 * eps)
+    fd = (derivatives((x0 + eps,))[0] - derivatives((x0 - eps,))[0]) / (2 * eps)
     assert abs(float(grad - tangent)) < 1e-12 * abs(float(grad))
     # the difference quotient's runs take other steps: it errs by ~tol / eps of its size
     # (measured 2.4e-6 relative for both controllers)
