@@ -1,6 +1,32 @@
+import os
+import subprocess
+import sys
+
 import jax
 import pytest
 
+# The suite's time is mostly XLA's CPU compiler. These two of its options make it compile in
+# about half the time and leave every number the same, bit for bit, so the suite tests what a
+# user runs (tests/test_compile_flags.py checks that, against a run without them). Set here,
+# before the backend starts, and inherited by pytest-xdist's workers and every subprocess.
+# A jaxlib that no longer knows one of them would abort at its first computation: a probe in a
+# subprocess decides, once, in the process that starts the workers.
+COMPILE_FLAGS = ("--xla_llvm_disable_expensive_passes=true", "--xla_cpu_use_fusion_emitters=false")
+
+
+def _with_compile_flags():
+    flags = os.environ.get("XLA_FLAGS", "")
+    if os.environ.get("GALERKIN_JAX_TEST_FLAGS") is not None or all(f in flags for f in COMPILE_FLAGS):
+        return
+    candidate = " ".join([flags, *COMPILE_FLAGS]).strip()
+    probe = subprocess.run([sys.executable, "-c", "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"],
+                           env=dict(os.environ, XLA_FLAGS=candidate), capture_output=True, timeout=120)
+    os.environ["GALERKIN_JAX_TEST_FLAGS"] = "on" if probe.returncode == 0 else "off"
+    if probe.returncode == 0:
+        os.environ["XLA_FLAGS"] = candidate
+
+
+_with_compile_flags()
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")  # no silent broadcasting
 
