@@ -82,7 +82,12 @@ def default_step_density(H, F0):
     the orbit turns (Kepler's third law), so the steps follow the orbit's own time scale; and
     s(z0) = 1, so h is the first step's length in t. Where it fails: at an equilibrium F = 0
     (s = inf; the status reports it), and where |F|, which mixes the units of q' and p', does
-    not measure how fast the state turns (pass your own s there).
+    not measure how fast the state turns (pass your own s there). Where it is weak: on an
+    eccentric orbit near apocentre, where |dH/dp| is small and changes fast, its share of |F|
+    makes s vary within a long step; the error of the transformed Hamiltonian made there is
+    divided by the small s of every pericentre. A density of the position alone (Kepler:
+    r^(3/2)) avoids that; the default keeps |dH/dp| so that s stays finite where the force
+    vanishes (docs/adaptive.md, "The default step density and your own").
     """
     return lambda q, p: (F0 / field_norm(H, q, p)) ** 0.75
 
