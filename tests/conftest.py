@@ -10,7 +10,8 @@ import pytest
 # user runs (tests/test_compile_flags.py checks that, against a run without them). Set here,
 # before the backend starts, and inherited by pytest-xdist's workers and every subprocess.
 # A jaxlib that no longer knows one of them would abort at its first computation: a probe in a
-# subprocess decides, once, in the process that starts the workers.
+# subprocess decides, once, in the process that starts the workers, and records its verdict in
+# GALERKIN_JAX_TEST_FLAGS; set that to "off" beforehand to run the suite without them.
 COMPILE_FLAGS = ("--xla_llvm_disable_expensive_passes=true", "--xla_cpu_use_fusion_emitters=false")
 
 
