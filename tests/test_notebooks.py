@@ -27,6 +27,8 @@ from typing import Optional
 
 import pytest
 
+from conftest import user_xla_flags
+
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
@@ -265,6 +267,7 @@ def test_committed_notebook_is_executed_and_small(name):
 @pytest.mark.parametrize("name", sorted(CHECKS))
 def test_notebook_runs_at_quick_size(name, monkeypatch):
     monkeypatch.setenv("GALERKIN_JAX_QUICK", "1")  # the kernel inherits the environment
+    monkeypatch.setenv("XLA_FLAGS", user_xla_flags())  # compiled as a user's: conftest.COMPILE_FLAGS
     notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
     client = nbclient.NotebookClient(notebook, timeout=300, kernel_name="python3",
                                      resources={"metadata": {"path": str(NOTEBOOKS)}})
@@ -281,6 +284,7 @@ def test_notebook_runs_at_quick_size(name, monkeypatch):
 @pytest.mark.parametrize("name", sorted(KEY_FIGURES))
 def test_committed_outputs_are_what_the_code_prints(name, monkeypatch):
     monkeypatch.delenv("GALERKIN_JAX_QUICK", raising=False)
+    monkeypatch.setenv("XLA_FLAGS", user_xla_flags())
     notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
     committed = printed(notebook)
     client = nbclient.NotebookClient(notebook, timeout=900, kernel_name="python3",
