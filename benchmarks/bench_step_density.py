@@ -31,13 +31,14 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 import galerkin_jax as gj  # noqa: E402
 from _common import write  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
+from galerkin_jax._controllers import default_step_density, field_norm  # noqa: E402
 
 H = scenes.kepler().H
 ORBITS = 5
 
 
 def blended(lam):
-    """s from N^2 = |dH/dq|^2 + lam |dH/dp|^2, normalised to s(z0) = 1 (lam = 1: the default)."""
+    """s from N^2 = |dH/dq|^2 + lam |dH/dp|^2, normalised to s(z0) = 1 (lam = 1 is the default's N)."""
 
     def make(q0, p0):
         def N(q, p):
@@ -69,7 +70,7 @@ def one(e, h, name):
     keep = np.isfinite(np.asarray(q[:, 0]))
     q, p = q[keep], p[keep]
     dH = np.asarray(jax.vmap(H)(q, p) - H(q0, p0))
-    s = (blended(1.0)(q0, p0) if make is None else s_user)
+    s = default_step_density(H, field_norm(H, q0, p0)) if make is None else s_user
     K = np.asarray(jax.vmap(s)(q, p)) * dH
     r = np.linalg.norm(np.asarray(q), axis=1)
     worst = int(np.argmax(np.abs(dH)))

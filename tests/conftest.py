@@ -6,18 +6,16 @@ import jax
 import pytest
 
 # The suite's time is mostly XLA's CPU compiler. Two options of it (fusion emitters off, LLVM's
-# expensive passes off) make it compile in about two thirds of the time. They do not change what
-# is computed, only how a reduction may be rounded (the order of its sum): the integrator's runs
-# that tests/test_compile_flags.py compares with a subprocess without them come out the same bit
-# for bit, a modified midpoint run's line integral rounds differently, and an optimisation over
-# many Adam steps amplifies such a difference (notebooks/05_tuning.ipynb: a loss reduced 8.2x
-# instead of 7.0x). The suite's claims hold with margins that any such rounding keeps (as on
-# another CPU); the notebooks, whose committed outputs are compared digit by digit, run with the
-# user's flags (``user_xla_flags``). Set here, before the backend starts, and inherited by
-# pytest-xdist's workers and every subprocess. A jaxlib that does not know an option would abort
-# at its first computation: probes in subprocesses keep those it knows, once, in the process
-# that starts the workers, and record the verdict in GALERKIN_JAX_TEST_FLAGS; set that to "off"
-# beforehand to run the suite without them.
+# expensive passes off) make it compile in about two thirds of the time. They change no
+# operation, only how a reduction may be rounded (the order of its sum): the runs that
+# tests/test_compile_flags.py compares come out the same bit for bit; others, as on another CPU,
+# may not, and the suite's claims hold with margins that such rounding keeps. The notebooks, whose
+# committed outputs are compared digit by digit, run with the user's flags (``user_xla_flags``).
+# What was measured: docs/performance.md, "Compile time". Set here, before the backend starts,
+# and inherited by pytest-xdist's workers and every subprocess. A jaxlib that does not know an
+# option would abort at its first computation: probes in subprocesses keep those it knows, once,
+# in the process that starts the workers, and record the verdict in GALERKIN_JAX_TEST_FLAGS; set
+# that to "off" beforehand to run the suite without them.
 COMPILE_FLAGS = ("--xla_llvm_disable_expensive_passes=true", "--xla_cpu_use_fusion_emitters=false")
 
 
