@@ -138,7 +138,7 @@ def main():
                 sol = call(q0, p0, jnp.asarray(tol))
                 run_s = best_time(call, q0, p0, jnp.asarray(tol), repeat=5, min_s=0.2)
                 with Counting() as counting:
-                    counted = run(method, q0, p0, T, tol)
+                    counted = jax.jit(lambda q0, p0, tol: run(method, q0, p0, T, tol))(q0, p0, jnp.asarray(tol))
                 assert int(counted.stats["num_steps"]) == int(sol.stats["num_steps"])  # the same run
                 attempts = int(sol.stats["num_steps"]) + int(sol.stats["num_rejected_steps"])
                 error = float(jnp.max(jnp.abs(jnp.concatenate([sol.q[-1] - q0, sol.p[-1] - p0]))))

@@ -34,8 +34,14 @@ class PIDController:
     accepted when ``err <= 1`` and its implicit solve converged to a finite state, and the next
     h is ``h clip(safety err^(-b1/q) err_prev^(-b2/q) err_prev2^(-b3/q), factormin, factormax)``
     with b1 = pcoeff + icoeff + dcoeff, b2 = -(pcoeff + 2 dcoeff), b3 = dcoeff (a rejected step
-    never grows h; a failed solve shrinks it by ``factormin``). The fields are pytree leaves, so a
-    sweep can vmap over tolerances.
+    never grows h; a failed solve shrinks it by ``factormin``). With ``predictive`` (the
+    default), after an accepted step the factor is at most Gustafsson's predictive one,
+    ``safety (h / h_prev) err^(-2/q) max(err_prev, 0.01)^(1/q)`` (h_prev, err_prev: the last
+    accepted step before this one), as in Hairer and Wanner's Radau5 (Solving ODEs II, Sec.
+    IV.8): where the time scale shrinks from step to step, as on the way into a pericentre,
+    it carries the trend of h on, where the I controller grows h after every accepted step
+    and has the next one rejected. The numeric fields are pytree leaves, so a sweep can vmap
+    over tolerances.
 
     Args:
         rtol, atol: relative and absolute tolerance on the embedded estimate, > 0. The true local
@@ -46,6 +52,8 @@ class PIDController:
         dtmax: largest step (default inf).
         safety: factor < 1 on the predicted optimal h.
         factormin, factormax: bounds of the factor by which h changes per step.
+        predictive: bound the factor by Gustafsson's predictive controller (above); False gives
+            diffrax's controller. Static.
     """
 
     rtol: float
@@ -58,9 +66,12 @@ class PIDController:
     safety: float = 0.9
     factormin: float = 0.2
     factormax: float = 10.0
+    predictive: bool = dataclasses.field(default=True, metadata=dict(static=True))
 
-    def next_factor(self, err, err_prev, err_prev2, order, accepted):
-        """The factor on h after a step with scaled error ``err`` (inf for a failed solve)."""
+    def next_factor(self, err, err_prev, err_prev2, order, accepted, h_ratio):
+        """The factor on h after a step with scaled error ``err`` (inf for a failed solve);
+        ``err_prev``, ``err_prev2``: the last two accepted steps' errors; ``h_ratio``: this
+        step's h over the last accepted one's (NaN before one was accepted)."""
         b1 = self.pcoeff + self.icoeff + self.dcoeff
         b2 = -(self.pcoeff + 2 * self.dcoeff)
         b3 = self.dcoeff
@@ -68,6 +79,9 @@ class PIDController:
         inverse = lambda e: 1.0 / jnp.maximum(e, tiny)
         factor = self.safety * inverse(err) ** (b1 / order) * inverse(err_prev) ** (b2 / order) \
             * inverse(err_prev2) ** (b3 / order)
+        if self.predictive:
+            trend = self.safety * h_ratio * inverse(err) ** (2 / order) * jnp.maximum(err_prev, 1e-2) ** (1 / order)
+            factor = jnp.where(accepted & jnp.isfinite(trend), jnp.minimum(factor, trend), factor)
         factor = jnp.where(jnp.isfinite(err), factor, self.factormin)
         upper = jnp.where(accepted, self.factormax, 1.0)
         return jnp.clip(factor, self.factormin, upper)

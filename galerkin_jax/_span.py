@@ -54,6 +54,8 @@ def check_controller(controller, method, batch=None):
         if controller.s is not None and not callable(controller.s):
             raise TypeError(f"TimeTransform.s must be a callable s(q, p), got {type(controller.s).__name__}.")
         return
+    if not isinstance(controller.predictive, bool):
+        raise TypeError(f"controller.predictive must be a bool, got {controller.predictive!r}.")
     shapes = [()] if batch is None else [(), (batch,)]
     values = {}
     for field in dataclasses.fields(controller):
