@@ -18,6 +18,8 @@ masked); the root finder folds the batch into one iteration as in ``march``. The
 forward-differentiable (``jax.jvp``); the step sizes are constants of the trajectory.
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
@@ -169,6 +171,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     if isinstance(controller, PIDController):
         rule, memory = _pid_rule(controller, H_bound, m, tiny)
         h0 = jnp.minimum(h0, controller.dtmax)
+        options = dataclasses.replace(options, varying_steps=True)
     elif clock is not None:
         rule, memory = _transform_rule(s, clock, view, tiny)
     else:

@@ -111,10 +111,29 @@ def _moments(n):
 def continuation(n, ratio=None, subtract_end=False):
     """``shift_matrix`` for a next element ``ratio`` times as long as the series' own (ratio may
     be traced; None: 1, the exact static matrix): T[i, j] = (2i + 1) int_0^1 P_i(2a - 1)
-    (P_j(1 + 2 ratio a) - s_j) da, by the same n-point Gauss rule (exact for any ratio)."""
+    (P_j(1 + 2 ratio a) - s_j) da, a polynomial of degree n - 1 in ratio: the vector of its
+    powers times the coefficient matrices (``_continuation_powers``), one small product, where
+    the Legendre recurrence at shifted nodes is a chain of kernels in every element of a run."""
     if ratio is None:
         return shift_matrix(n, subtract_end)
-    x, _ = npleg.leggauss(n)
     ratio = jnp.asarray(ratio)
-    ahead = legendre_values(1.0 + ratio * jnp.asarray((x + 1.0) / 2.0, ratio.dtype), n) - (1.0 if subtract_end else 0.0)
-    return jnp.asarray(test_scale(n)[:, None], ratio.dtype) * (jnp.asarray(_moments(n), ratio.dtype) @ ahead)
+    powers = ratio ** jnp.arange(n, dtype=ratio.dtype)
+    return (powers @ jnp.asarray(_continuation_powers(n, subtract_end).reshape(n, n * n), ratio.dtype)).reshape(n, n)
+
+
+@functools.lru_cache(maxsize=None)
+def _continuation_powers(n, subtract_end):
+    """T_m, shape ``(n, n, n)``, with ``continuation(n, r) = sum_m r^m T_m``: P_j(1 + 2 r a) at the
+    n Gauss nodes a, expanded in powers of r, integrated against P_i by the n-point Gauss rule
+    (exact: the products have degree at most 2n - 2 in a)."""
+    x, _ = npleg.leggauss(n)
+    a = (x + 1.0) / 2.0
+    ahead = np.zeros((n, n, n))  # [power of r, node, j]
+    for j in range(n):
+        P_j = npleg.Legendre.basis(j).convert(kind=np.polynomial.Polynomial)
+        for g in range(n):
+            coefficients = P_j(np.polynomial.Polynomial([1.0, 2.0 * a[g]])).coef
+            ahead[: coefficients.size, g, j] = coefficients
+    if subtract_end:
+        ahead[0] -= 1.0
+    return test_scale(n)[None, :, None] * (_moments(n)[None] @ ahead)

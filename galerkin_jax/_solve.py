@@ -156,10 +156,17 @@ class Options:
         solver: ``SolverOptions``.
         fixed_point: the method has a fixed-point iteration; else every element is Newton's,
             by Newton-Krylov where no dense matrix is kept, whatever ``solver.krylov`` says.
+        varying_steps: h changes from element to element (a ``PIDController``'s run): a small
+            system follows the Newton policy of a large one (``SolverOptions``: the fixed
+            point's patience, the refresh rate, ``newton_stretch``). A matrix taken for one h
+            serves few later elements, so it costs what a large system's does: a small
+            system's policy (Newton early, kept for good) would take a fresh matrix in every
+            element after a loose tolerance's first long step.
     """
 
     solver: SolverOptions
     fixed_point: bool = True
+    varying_steps: bool = False
 
     @property
     def max_iterations(self):
@@ -266,6 +273,7 @@ class _Problem:
     scale: jax.Array  # (B,): the size of the state the unknowns are increments of
     solver: SolverOptions
     newton: bool  # a Newton phase is there to ask for
+    large: bool = False  # the Newton policy of a large system (``Options.varying_steps``)
     unit: object = dataclasses.field(init=False)  # (B,): the scale of the ``sizes``, or None
     # the batched residual, jitted: its call sites (start, blocks, Newton matrix) reuse one trace
     _residual: object = dataclasses.field(init=False, repr=False)
@@ -448,7 +456,7 @@ def _block(problem, c, inverse, size):
     # largest and would hold it back a block), one update per check (Newton): the largest
     # of the element's ratios, as one ratio alone is noisy
     theta = rate if size > 1 else jnp.fmax(rate, c["rate"])
-    iterations, large = c["iterations"] + size * moving, n > solver.small
+    iterations, large = c["iterations"] + size * moving, problem.large
     # a Newton member's patience counts from its matrix, a fixed-point member's from the start
     left = jnp.where(newton, solver.patience, solver.fixed_point_patience_for(large)) - jnp.where(
         newton, iterations - c["since"], iterations)
@@ -653,7 +661,8 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
     B, n, dtype = Z_pred.shape[0], Z_pred[0].size, Z_pred.dtype
     solver = options.solver
     krylov = matrix.inverse is None and _krylov(options)
-    problem = _Problem(fn, params, scale, solver, matrix.inverse is not None or krylov)
+    problem = _Problem(fn, params, scale, solver, matrix.inverse is not None or krylov,
+                       n > solver.small or options.varying_steps)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
     # the watchdog watches an element whose predictor is the constant guess (``first``):
     # elsewhere the predictor has the previous elements' history
@@ -682,7 +691,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
     # linearisation, so no NaN reaches the others' gradients (its outputs are masked)
     Z = _select(status == Status.SUCCESS, c["Z"], Z_alt)
     # elements of Newton left: one fewer for a member in Newton mode, a stretch for one that switched
-    switched = solver.newton_stretch if n > solver.small else ALWAYS
+    switched = solver.newton_stretch if problem.large else ALWAYS
     left = jnp.where(newton, matrix.newton, jnp.where(c["newton"], switched, 0)) - c["newton"]
     matrix = Matrix.of(left, matrix.pending & ~c["fresh"], inverse, reference)
     lenient = c["lenient"] & (status == Status.SUCCESS)
