@@ -2,10 +2,10 @@
 
 Three step rules share it:
 
-* ``PIDController``: each attempt solves one element of size h from the constant predictor,
-  estimates its error (``embedded_error``) and is accepted or rejected; h changes by the
-  controller's factor either way. A failed solve or a non-finite state rejects the step, and
-  ends the run only below ``dtmin``.
+* ``PIDController``: each attempt solves one element of size h, estimates its error
+  (``embedded_error``) and is accepted or rejected; h changes by the controller's factor
+  either way. A failed solve or a non-finite state rejects the step, and ends the run only
+  below ``dtmin``. The root finder is told that h varies (``Options.varying_steps``).
 * ``TimeTransform``: the run integrates the Poincare-transformed K (``poincare``) in tau with
   the constant step h; the time is the state's coordinate ``clock``. The element that passes
   t1 is shortened in tau until it lands on t1 (Newton on its end time, whose tau-derivative

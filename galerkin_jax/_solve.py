@@ -37,8 +37,9 @@ the fields of ``SolverOptions`` (named in parentheses), each with its unit and r
   Jacobian-vector products (Newton-Krylov; its cost follows the Hessian's sparsity, not n^3).
   A small system that switched stays with Newton (its Newton update costs two to three
   fixed-point ones); a large one, whose update costs a product with an n x n matrix or a
-  Krylov solve, for ``newton_stretch`` elements, then tries the fixed point again. Small
-  systems solve a run's first element by Newton: the predictor has no history yet.
+  Krylov solve, for ``newton_stretch`` elements, then tries the fixed point again, and so
+  does a small one whose h changes from element to element (``Options.varying_steps``).
+  Small systems solve a run's first element by Newton: the predictor has no history yet.
 
 The loop's cost is mostly per check, not per update: the decisions, the sizes and the loop's
 trip are each a kernel that XLA's CPU runtime launches on its own. A block of two fixed-point
