@@ -6,8 +6,9 @@ diffrax Dopri8 + PID and Tsit5 + PID, and against uniform steps over long runs.
 Four parts, in one process, BLAS pinned to one thread:
   a  Kepler e = 0.9 and e = 0.99, 10 orbits from apocentre: work-precision (run time and steps
      against the final error, max-norm against the exact orbit), cG(k)+Gauss k with a
-     PIDController (k = 4, 6, 8; rtol = atol = tol swept), cG(6)+Gauss 6 with the
-     TimeTransform (h in tau swept), diffrax Dopri8 and Tsit5 with PID (rtol = atol = tol);
+     PIDController (k = 4, 6, 8; rtol = atol = tol, one run per decade), cG(6)+Gauss 6 with the
+     TimeTransform (h in tau swept), diffrax Dopri8 and Tsit5 with PID (rtol = atol = tol, one
+     run per decade from 1e-6 to 1e-15);
      at each target final error the cost of each solver interpolated on its log-log curve, and
      the ratio ours / best peer;
   b  the Pythagorean three-body problem (masses 3, 4, 5 at rest, G = 1), t in [0, 5], with its
@@ -169,10 +170,11 @@ def peer(solver):
 
 def solvers(quick):
     ks = (6, 8) if quick else (4, 6, 8)
-    tols = {4: (1e-6, 1e-8, 1e-10, 1e-12, 1e-14), 6: (1e-4, 1e-6, 1e-8, 1e-10, 1e-12), 8: (1e-3, 1e-5, 1e-7, 1e-9, 1e-11)}
+    decades = lambda a, b: tuple(10.0 ** -e for e in range(a, b + 1))  # one run per decade of tolerance
+    tols = {4: decades(6, 14), 6: decades(4, 12), 8: decades(3, 11)}
     out = {f"cG({k})+Gauss {k} PID": (ours(gauss(k), "PID"), tols[k]) for k in ks}
     out["cG(6)+Gauss 6 TimeTransform"] = (ours(gauss(6), "TT"), "tt_h")
-    peer_tols = (1e-6, 1e-8, 1e-10, 1e-12, 1e-14, 1e-15)
+    peer_tols = decades(6, 15)
     out.update({name: (peer(solver), peer_tols) for name, solver in PEERS.items()})
     if quick:
         out = {name: (make, knobs if isinstance(knobs, str) else knobs[1::2]) for name, (make, knobs) in out.items()}

@@ -5,7 +5,8 @@ and attempts whose solve failed; and what one Newton matrix costs against one re
     python benchmarks/bench_attempts.py
 
 Kepler e = 0.9 and e = 0.99 over 10 orbits from apocentre (as ``bench_adaptive.py`` part a),
-cG(k) + Gauss k with ``PIDController(tol, tol)``. Two passes per run: the timed one (compile
+cG(k) + Gauss k with ``PIDController(tol, tol)``, and the same run with ``predictive=False``
+(diffrax's I controller: steps, rejections, iterations, error, run time). Two passes per run: the timed one (compile
 apart, best of several calls) and a counting one, in which ``_solve.block_jacobians`` (the one
 function that computes Newton matrices) and the controller's rule report to a host callback;
 the callbacks slow that pass, so it is not timed. The cost of a matrix is timed apart, in a
@@ -33,7 +34,7 @@ from _common import best_time, compiled, write  # noqa: E402
 from galerkin_jax import _adaptive, _solve, scenes  # noqa: E402
 from galerkin_jax._march import element_residual  # noqa: E402
 
-RUNS = {6: (1e-4, 1e-6, 1e-8), 8: (1e-3, 1e-5, 1e-7, 1e-9)}
+RUNS = {6: (1e-4, 1e-5, 1e-6, 1e-8), 8: (1e-3, 1e-5, 1e-6, 1e-7, 1e-9)}
 H = scenes.kepler().H
 
 
@@ -42,9 +43,10 @@ def kepler(e):
     return q0, p0, 2 * np.pi * 10
 
 
-def run(method, q0, p0, T, tol):
-    return gj.integrate(H, q0, p0, method=method, h=1e-3 * T, t1=T, controller=gj.PIDController(tol, tol),
-                        max_steps=200_000, error_estimate=False)
+def run(method, q0, p0, T, tol, predictive=True):
+    return gj.integrate(H, q0, p0, method=method, h=1e-3 * T, t1=T,
+                        controller=gj.PIDController(tol, tol, predictive=predictive), max_steps=200_000,
+                        error_estimate=False)
 
 
 class Counting:
@@ -134,6 +136,7 @@ def main():
         for k, tols in RUNS.items():
             method = gj.CG(k, gj.gauss_legendre(k))
             compile_s, call = compiled(lambda q0, p0, tol: run(method, q0, p0, T, tol), q0, p0, jnp.asarray(tols[0]))
+            _, call_i = compiled(lambda q0, p0, tol: run(method, q0, p0, T, tol, False), q0, p0, jnp.asarray(tols[0]))
             for tol in tols:
                 sol = call(q0, p0, jnp.asarray(tol))
                 run_s = best_time(call, q0, p0, jnp.asarray(tol), repeat=5, min_s=0.2)
@@ -146,12 +149,20 @@ def main():
                            error=error, run_ms=1e3 * run_s, compile_s=compile_s, us_per_attempt=1e6 * run_s / attempts,
                            matrices=counting.matrices, iterations=int(sol.stats["num_newton_iterations"]),
                            by_category=per_attempt(counting, int(sol.stats["num_newton_iterations"])))
+                sol_i = call_i(q0, p0, jnp.asarray(tol))
+                rec["i_control"] = dict(  # the same run with predictive=False (diffrax's controller)
+                    steps=int(sol_i.stats["num_steps"]), rejected=int(sol_i.stats["num_rejected_steps"]),
+                    iterations=int(sol_i.stats["num_newton_iterations"]),
+                    error=float(jnp.max(jnp.abs(jnp.concatenate([sol_i.q[-1] - q0, sol_i.p[-1] - p0])))),
+                    run_ms=1e3 * best_time(call_i, q0, p0, jnp.asarray(tol), repeat=5, min_s=0.2))
                 records.append(rec)
                 acc = rec["by_category"]["accepted"]
                 print(f"e={e} cG({k}) tol {tol:.0e}: error {error:.1e}, {attempts} attempts, {1e3 * run_s:.2f} ms "
                       f"({rec['us_per_attempt']:.1f} µs/attempt), {counting.matrices} Newton matrices; accepted: "
                       f"{acc['iterations_per_attempt']:.1f} iterations, {acc['matrices_per_attempt']:.2f} matrices "
-                      f"per attempt", flush=True)
+                      f"per attempt; rejected {int(sol.stats['num_rejected_steps'])}, I control: "
+                      f"{rec['i_control']['rejected']} of {rec['i_control']['steps'] + rec['i_control']['rejected']}, "
+                      f"{rec['i_control']['run_ms']:.2f} ms", flush=True)
     costs = {f"cG({k})": matrix_cost(k, 0.9) for k in RUNS}
     for name, c in costs.items():
         print(f"{name}: {c['unknowns']} unknowns, residual {c['residual_us']:.2f} µs, Newton matrix "

@@ -80,7 +80,7 @@ class PIDController:
         factor = self.safety * inverse(err) ** (b1 / order) * inverse(err_prev) ** (b2 / order) \
             * inverse(err_prev2) ** (b3 / order)
         if self.predictive:
-            trend = self.safety * h_ratio * inverse(err) ** (2 / order) * jnp.maximum(err_prev, 1e-2) ** (1 / order)
+            trend = self.safety * h_ratio * (jnp.maximum(err_prev, 1e-2) * inverse(err) ** 2) ** (1 / order)
             factor = jnp.where(accepted & jnp.isfinite(trend), jnp.minimum(factor, trend), factor)
         factor = jnp.where(jnp.isfinite(err), factor, self.factormin)
         upper = jnp.where(accepted, self.factormax, 1.0)
