@@ -6,10 +6,10 @@ and attempts whose solve failed; and what one Newton matrix costs against one re
 
 Kepler e = 0.9 and e = 0.99 over 10 orbits from apocentre (as ``bench_adaptive.py`` part a),
 cG(k) + Gauss k with ``PIDController(tol, tol)``, and the same run with ``predictive=False``
-(diffrax's I controller: steps, rejections, iterations, error, run time). Two passes per run: the timed one (compile
-apart, best of several calls) and a counting one, in which ``_solve.block_jacobians`` (the one
-function that computes Newton matrices) and the controller's rule report to a host callback;
-the callbacks slow that pass, so it is not timed. The cost of a matrix is timed apart, in a
+(diffrax's I controller: steps, rejections, iterations, error, run time). Two passes per run:
+the timed one (compile apart, best of several calls) and a counting one, in which
+``_solve.block_jacobians`` (the one function that computes Newton matrices) and the
+controller's rule report to a host callback; the callbacks slow that pass, so it is not timed. The cost of a matrix is timed apart, in a
 ``lax.fori_loop`` of 200, against the residual in the same loop. Writes results/attempts.json.
 """
 
