@@ -55,7 +55,8 @@ def _pid_rule(controller, H_bound, order, tiny):
         e = embedded_error(H_bound, q, p, step["W"], step["h"])
         err = jnp.where(step["solved"], scaled_error(e, step["z"], step["z1"], controller), jnp.inf)
         accept = err <= 1
-        h_ratio = jnp.where(c["steps"] > 0, step["h"] / c["h_prev"], jnp.nan)  # h_prev: the last accepted h
+        # h_prev: the last accepted h
+        h_ratio = jnp.where(c["steps"] > 0, step["h"] / c["h_prev"], jnp.nan) if controller.predictive else None
         h_next = jnp.minimum(step["h"] * controller.next_factor(err, c["err1"], c["err2"], order, accept, h_ratio),
                              controller.dtmax)
         at_floor = ~accept & ((step["h"] <= controller.dtmin) | (h_next <= tiny))

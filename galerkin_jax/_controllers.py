@@ -71,7 +71,8 @@ class PIDController:
     def next_factor(self, err, err_prev, err_prev2, order, accepted, h_ratio):
         """The factor on h after a step with scaled error ``err`` (inf for a failed solve);
         ``err_prev``, ``err_prev2``: the last two accepted steps' errors; ``h_ratio``: this
-        step's h over the last accepted one's (NaN before one was accepted)."""
+        step's h over the last accepted one's (NaN before one was accepted; read only with
+        ``predictive``)."""
         b1 = self.pcoeff + self.icoeff + self.dcoeff
         b2 = -(self.pcoeff + 2 * self.dcoeff)
         b3 = self.dcoeff

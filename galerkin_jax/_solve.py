@@ -274,7 +274,7 @@ class _Problem:
     scale: jax.Array  # (B,): the size of the state the unknowns are increments of
     solver: SolverOptions
     newton: bool  # a Newton phase is there to ask for
-    large: bool = False  # the Newton policy of a large system (``Options.varying_steps``)
+    large: bool  # the Newton policy of a large system: n > ``small``, or ``Options.varying_steps``
     unit: object = dataclasses.field(init=False)  # (B,): the scale of the ``sizes``, or None
     # the batched residual, jitted: its call sites (start, blocks, Newton matrix) reuse one trace
     _residual: object = dataclasses.field(init=False, repr=False)
