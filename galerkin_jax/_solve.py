@@ -38,7 +38,9 @@ the fields of ``SolverOptions`` (named in parentheses), each with its unit and r
   A small system that switched stays with Newton (its Newton update costs two to three
   fixed-point ones); a large one, whose update costs a product with an n x n matrix or a
   Krylov solve, for ``newton_stretch`` elements, then tries the fixed point again, and so
-  does a small one whose h changes from element to element (``Options.varying_steps``).
+  does a small one whose h changes from element to element (``Options.varying_steps``);
+  such an element fails when it asks for more than ``attempt_matrices`` matrices, and the
+  controller retries it with a shorter h.
   Small systems solve a run's first element by Newton: the predictor has no history yet.
 
 The loop's cost is mostly per check, not per update: the decisions, the sizes and the loop's
@@ -275,6 +277,9 @@ class _Problem:
     solver: SolverOptions
     newton: bool  # a Newton phase is there to ask for
     large: bool  # the Newton policy of a large system: n > ``small``, or ``Options.varying_steps``
+    # the fresh dense Newton matrices a member may take in one element before it fails, or None
+    # (no cap): ``SolverOptions.attempt_matrices`` under a controller (``Options.varying_steps``)
+    matrix_cap: object = None
     unit: object = dataclasses.field(init=False)  # (B,): the scale of the ``sizes``, or None
     # the batched residual, jitted: its call sites (start, blocks, Newton matrix) reuse one trace
     _residual: object = dataclasses.field(init=False, repr=False)
@@ -313,12 +318,12 @@ class _Problem:
 # the int32 counts: XLA then computes each group in one fused kernel, and copies it once per
 # loop trip, not once per scalar (the loop's cost is mostly kernel launches). A batch keeps
 # them apart: a packed group is a concatenate, whose per-element indexing XLA does not vectorise.
-_GROUPS = {"floats": ("damping", "step", "rate", "r_size", "ref_size", "watch", "lenient"),
+_GROUPS = {"floats": ("damping", "step", "rate", "r_size", "ref_size", "watch", "lenient", "matrices"),
            "ints": ("newton", "fresh", "current", "asked", "active", "iterations", "status", "since")}
 _FLAGS = ("newton", "fresh", "current", "asked", "active", "lenient")
 # at most 8 a group: XLA's CPU compiler fuses a concatenate of up to 8 operands into one kernel,
 # so the small integers past that travel among the floats (exactly: they are far below 2^24)
-_COUNTS = ("watch",)
+_COUNTS = ("watch", "matrices")
 
 
 def _pack(c):
@@ -473,6 +478,13 @@ def _block(problem, c, inverse, size):
     # that reads them (the selects below, the packed carries), which costs more than the rest
     take, going, failed, backtrack, rejected, accepted, watch, tentative = jax.lax.optimization_barrier(
         (take, going, failed, backtrack, rejected, done & accept_here, watch, tentative))
+    if problem.matrix_cap is not None and inverse is not KRYLOV:
+        # under a controller, a member that asks for one matrix too many fails: the controller
+        # retries the element shorter, which costs less than more matrices at this h
+        spent = going & ~failed & asks & (c["matrices"] >= problem.matrix_cap)
+        going, failed = going & ~spent, failed | spent
+    else:
+        spent = jnp.zeros_like(going)
     asked = c["asked"] | (going & ~failed & ~backtrack & asks & problem.newton)
     restart = asked | backtrack
     # An accepted iterate gets one more update from its residual, already known: a product, no
@@ -492,7 +504,7 @@ def _block(problem, c, inverse, size):
         rate=jnp.where(moving, jnp.where(restart, jnp.nan, rate), c["rate"]),
         r_size=jnp.where(take, r_size, c["r_size"]), iterations=iterations, watch=watch,
         ref_size=jnp.where(tentative, c["r_size"], c["ref_size"]),
-        status=jnp.where(failed, Status.NONFINITE, c["status"]),
+        status=jnp.where(spent, Status.NEWTON_MAX_ITERATIONS, jnp.where(failed, Status.NONFINITE, c["status"])),
     ))
 
 
@@ -547,15 +559,16 @@ def _gathered(problem, c, which, capacity, solve):
     return jax.tree.map(lambda x, y: x.at[index].set(y, mode="drop") if jnp.ndim(x) else y, c, sub)
 
 
-def _served(c, served):
-    """The members ``served`` a fresh Newton matrix: Newton mode, a new rate, the patience
-    counted from here, and full steps again: a damping that outlived the matrix it was halved
-    for keeps every later step short, and the modified midpoint rule's 2e5-step Kepler run
+def _served(c, served, dense=True):
+    """The members ``served`` a fresh Newton matrix (``dense``; else a Krylov direction, which
+    ``_Problem.matrix_cap`` does not count): Newton mode, a new rate, the patience counted
+    from here, and full steps again: a damping that outlived the matrix it was halved for
+    keeps every later step short, and the modified midpoint rule's 2e5-step Kepler run
     stalled on it (``test_energy_round_off_grows_no_faster_than_sqrt_n``)."""
     return dict(c, newton=c["newton"] | served, fresh=c["fresh"] | served, current=c["current"] | served,
                 asked=c["asked"] & ~served, damping=jnp.where(served, 1.0, c["damping"]),
                 step=jnp.where(served, jnp.nan, c["step"]), rate=jnp.where(served, jnp.nan, c["rate"]),
-                since=jnp.where(served, c["iterations"], c["since"]))
+                since=jnp.where(served, c["iterations"], c["since"]), matrices=c["matrices"] + (served & dense))
 
 
 def _refresh(problem, c, inverse, reference):
@@ -624,7 +637,7 @@ def _newton_krylov(problem, c, reference):
     """The Newton phase of a system without a dense matrix: every update a fresh Newton
     direction, by GMRES (``_Problem.newton_krylov``). There is no matrix to wait for: every
     member that asks is served at once."""
-    serve = lambda c: _pack(_served(_unpack(c), _get(c, "asked")))
+    serve = lambda c: _pack(_served(_unpack(c), _get(c, "asked"), dense=False))
     moving = lambda s: jnp.any(_live(problem, s[0]) & (_get(s[0], "newton") | _get(s[0], "asked")))
 
     def step(state):
@@ -663,7 +676,8 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
     solver = options.solver
     krylov = matrix.inverse is None and _krylov(options)
     problem = _Problem(fn, params, scale, solver, matrix.inverse is not None or krylov,
-                       n > solver.small or options.varying_steps)
+                       n > solver.small or options.varying_steps,
+                       solver.attempt_matrices if options.varying_steps else None)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
     # the watchdog watches an element whose predictor is the constant guess (``first``):
     # elsewhere the predictor has the previous elements' history
@@ -673,7 +687,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
     asked = newton & matrix.pending & ok & ~skip
     zero = jnp.zeros(B, jnp.int32)
     c = dict(Z=Z, r=r, newton=newton, fresh=newton if krylov else false, current=newton if krylov else false,
-             asked=asked, damping=jnp.ones(B, dtype), step=nan, rate=nan, r_size=r_size, ref_size=nan,
+             asked=asked, damping=jnp.ones(B, dtype), step=nan, rate=nan, r_size=r_size, ref_size=nan, matrices=zero,
              active=ok & ~skip, lenient=false, iterations=zero, since=zero, watch=watch,
              status=jnp.where(ok | skip, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32))
     if B > 1:

@@ -48,6 +48,12 @@ class SolverOptions:
         fixed_point_patience (iterations, small and large systems): a fixed-point member
             switches to Newton after this many iterations in one element; at most half of
             ``max_iterations`` (``fixed_point_patience_for``), so that Newton is always reached.
+        attempt_matrices (matrices): under a ``PIDController``, the fresh Newton matrices an
+            element may take; one that asks for another fails (status 1), and the controller
+            retries it with a shorter h. A step the fixed point cannot take and Newton needs
+            more matrices for is a step too long: a shorter attempt costs less than more
+            matrices at this one, which from the continued polynomial often end at another root
+            of the element equations or at the cap.
         newton_stretch (elements): a large system that switched to Newton stays with it this
             long, then tries the fixed point again (one hard element does not cost it the run).
         fixed_point_block (iterations): fixed-point updates per check (a check costs more
@@ -89,6 +95,7 @@ class SolverOptions:
     patience: int = 8
     fixed_point_patience: tuple = (12, 24)
     newton_stretch: int = 16
+    attempt_matrices: int = 2
     fixed_point_block: int = 2
     first_block: int = 4
     stragglers: int = 8
@@ -103,6 +110,7 @@ class SolverOptions:
 
     def __post_init__(self):
         for name in ("max_iterations", "dense_limit", "small", "sweep_dimension", "patience", "newton_stretch",
+                     "attempt_matrices",
                      "fixed_point_block", "first_block", "stragglers", "refresh_share", "krylov_restart",
                      "krylov_restarts"):
             _check_count(name, getattr(self, name), 1)

@@ -106,6 +106,60 @@ def test_a_loose_tolerance_keeps_to_the_fixed_point(monkeypatch):
     jax.clear_caches()
 
 
+def test_a_step_too_long_for_the_solve_fails_after_two_matrices(monkeypatch):
+    """Kepler e = 0.9 over two orbits from apocentre, cG(8) + Gauss 8, rtol = atol = 1e-4: near
+    apocentre the controller proposes steps the fixed point cannot take, and Newton from the
+    continued polynomial needed up to 13 fresh matrices in an attempt (the watchdog, damping,
+    refreshes) before it failed or ended at another root of the element equations, which the
+    estimate rejects. Under a controller an element that asks for a third matrix fails
+    (``SolverOptions.attempt_matrices``) and the controller retries it shorter. Measured: 80
+    matrices in 64 attempts (17 failed, at most 2 each), against 245 in 73 (at most 13) with
+    the cap at 48; final errors 5.4e-9 and 9.6e-9. Bounds: at most 2 per attempt, at least 5
+    failed attempts (the cap is reached), half the matrices of the uncapped run, error 1e-7."""
+    from galerkin_jax import _adaptive, _solve
+
+    log = []
+    jacobians, solve = _solve.block_jacobians, _adaptive.solve
+
+    def counted(residual, Z):
+        jax.debug.callback(lambda: log.append(-1))
+        return jacobians(residual, Z)
+
+    def attempt(*args):
+        out = solve(*args)
+        jax.debug.callback(lambda status: log.append(int(status)), out[3])
+        return out
+
+    monkeypatch.setattr(_solve, "block_jacobians", counted)
+    monkeypatch.setattr(_adaptive, "solve", attempt)
+    jax.clear_caches()  # trace again, through the wrappers
+    e, T2 = 0.9, 4 * np.pi
+    He, _, _ = helpers.kepler(e)
+    q0, p0 = (jnp.asarray(x) for x in helpers.kepler_exact(np.pi, e))
+    z1 = np.concatenate(helpers.kepler_exact(np.pi + T2, e))
+    runs = {}
+    for cap in (2, 48):
+        log.clear()
+        sol = gj.integrate(He, q0, p0, method=gj.CG(8, gj.gauss_legendre(8)), h=1e-3 * T2, t1=T2,
+                           controller=pid(1e-4), error_estimate=False, solver=gj.SolverOptions(attempt_matrices=cap))
+        jax.effects_barrier()
+        assert int(sol.status) == 0
+        assert np.max(np.abs(np.concatenate([sol.q[-1], sol.p[-1]]) - z1)) < 1e-7
+        per, matrices = [], 0
+        for entry in log:  # -1: a matrix; else an attempt's solve status
+            if entry < 0:
+                matrices += 1
+            else:
+                per.append((matrices, entry))
+                matrices = 0
+        runs[cap] = per
+    assert max(m for m, _ in runs[2]) <= 2
+    assert sum(1 for _, status in runs[2] if status) >= 5
+    assert sum(m for m, _ in runs[2]) <= 0.5 * sum(m for m, _ in runs[48])
+    monkeypatch.undo()
+    jax.clear_caches()
+
+
 def test_the_predictive_factor_is_gustafssons():
     """After an accepted step the factor is the smaller of the I controller's,
     safety err^(-1/q), and Gustafsson's, safety (h / h_prev) err^(-2/q) max(err_prev, 0.01)^(1/q)

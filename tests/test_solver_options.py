@@ -37,6 +37,7 @@ def test_options_are_frozen_hashable_and_the_shorthands_build_the_same_object():
 @pytest.mark.parametrize("bad, error, name", [
     (dict(max_iterations=0), ValueError, "max_iterations"),
     (dict(patience=1.5), ValueError, "patience"),
+    (dict(attempt_matrices=0), ValueError, "attempt_matrices"),
     (dict(theta_newton=(0.03,)), ValueError, "theta_newton"),
     (dict(min_damping=0.0), ValueError, "min_damping"),
     (dict(krylov=1), TypeError, "krylov"),
