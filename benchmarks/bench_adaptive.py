@@ -7,8 +7,8 @@ Four parts, in one process, BLAS pinned to one thread:
   a  Kepler e = 0.9 and e = 0.99, 10 orbits from apocentre: work-precision (run time and steps
      against the final error, max-norm against the exact orbit), cG(k)+Gauss k with a
      PIDController (k = 4, 6, 8; rtol = atol = tol, one run per decade), cG(6)+Gauss 7 with it
-     (one quadrature point more: the energy error of a step two orders higher, so a smaller
-     phase error at the same steps; docs/adaptive.md), cG(6)+Gauss 6 with the
+     (one quadrature point more: the energy error of a step O(h^(2k + 3)), not O(h^(2k + 1)),
+     so a smaller phase error at the same steps; docs/adaptive.md), cG(6)+Gauss 6 with the
      TimeTransform (h in tau swept), diffrax Dopri8 and Tsit5 with PID (rtol = atol = tol, one
      run per decade from 1e-6 to 1e-15);
      at each target final error the cost of each solver interpolated on its log-log curve, and
