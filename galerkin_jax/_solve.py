@@ -38,9 +38,9 @@ the fields of ``SolverOptions`` (named in parentheses), each with its unit and r
   A small system that switched stays with Newton (its Newton update costs two to three
   fixed-point ones); a large one, whose update costs a product with an n x n matrix or a
   Krylov solve, for ``newton_stretch`` elements, then tries the fixed point again, and so
-  does a small one whose h changes from element to element (``Options.varying_steps``);
-  such an element fails when it asks for more than ``attempt_matrices`` matrices, and the
-  controller retries it with a shorter h.
+  does a small one whose h changes from element to element (``Options.varying_steps``).
+  Under a controller an element of any size that asks for more than ``attempt_matrices``
+  dense matrices fails, and the controller retries it with a shorter h.
   Small systems solve a run's first element by Newton: the predictor has no history yet.
 
 The loop's cost is mostly per check, not per update: the decisions, the sizes and the loop's
@@ -481,7 +481,7 @@ def _block(problem, c, inverse, size):
     if problem.matrix_cap is not None and inverse is not KRYLOV:
         # under a controller, a member that asks for one matrix too many fails: the controller
         # retries the element shorter, which costs less than more matrices at this h
-        spent = going & ~failed & asks & (c["matrices"] >= problem.matrix_cap)
+        spent = going & ~failed & ~backtrack & asks & (c["matrices"] >= problem.matrix_cap)
         going, failed = going & ~spent, failed | spent
     else:
         spent = jnp.zeros_like(going)

@@ -48,12 +48,14 @@ class SolverOptions:
         fixed_point_patience (iterations, small and large systems): a fixed-point member
             switches to Newton after this many iterations in one element; at most half of
             ``max_iterations`` (``fixed_point_patience_for``), so that Newton is always reached.
-        attempt_matrices (matrices): under a ``PIDController``, the fresh Newton matrices an
-            element may take; one that asks for another fails (status 1), and the controller
-            retries it with a shorter h. A step the fixed point cannot take and Newton needs
-            more matrices for is a step too long: a shorter attempt costs less than more
-            matrices at this one, which from the continued polynomial often end at another root
-            of the element equations or at the cap.
+        attempt_matrices (matrices): under a ``PIDController``, the fresh dense Newton matrices
+            an attempt may take (Newton-Krylov directions are not counted); one that asks for
+            another fails (status 1), and the controller retries it with a shorter h. A step
+            the fixed point cannot take and Newton needs more matrices for is a step too long:
+            a shorter attempt costs less than more matrices at this one, which from the
+            continued polynomial often end at another root of the element equations or at
+            ``max_iterations``. Every step of the watchdog (``watch``) and every damped step
+            asks for a fresh matrix, so under a controller they get at most this many.
         newton_stretch (elements): a large system that switched to Newton stays with it this
             long, then tries the fixed point again (one hard element does not cost it the run).
         fixed_point_block (iterations): fixed-point updates per check (a check costs more

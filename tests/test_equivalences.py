@@ -74,6 +74,8 @@ STRUCTURE = {
     # name: (method, symplectic?, energy conserved for every H?)
     "cG(1) midpoint": (gj.CG(1, gj.midpoint()), True, False),
     "cG(2) Gauss 2": (gj.CG(2, gj.gauss_legendre(2)), True, False),
+    # one point more than k: not Gauss collocation, not symplectic (docs/adaptive.md)
+    "cG(2) Gauss 3": (gj.CG(2, gj.gauss_legendre(3)), False, False),
     # Theorem 3.1 for any H, up to the quadrature error: here (degree 9, h = 0.05) below round-off
     "cG(2) Gauss 5 (~exact)": (gj.CG(2, gj.gauss_legendre(5)), False, True),
     "dG(1) Gauss 2": (gj.DG(1, gj.gauss_legendre(2)), False, False),
