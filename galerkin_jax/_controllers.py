@@ -34,7 +34,7 @@ class PIDController:
     accepted when ``err <= 1`` and its implicit solve converged to a finite state, and the next
     h is ``h clip(safety err^(-b1/q) err_prev^(-b2/q) err_prev2^(-b3/q), factormin, factormax)``
     with b1 = pcoeff + icoeff + dcoeff, b2 = -(pcoeff + 2 dcoeff), b3 = dcoeff (a rejected step
-    never grows h; a failed solve shrinks it by ``factormin``). With ``predictive`` (the
+    never grows h; a failed solve multiplies it by ``max(failfactor, factormin)``). With ``predictive`` (the
     default), after an accepted step the factor is at most Gustafsson's predictive one,
     ``safety (h / h_prev) err^(-2/q) max(err_prev, 0.01)^(1/q)`` (h_prev, err_prev: the last
     accepted step before this one), as in Hairer and Wanner's Radau5 (Solving ODEs II, Sec.
@@ -52,8 +52,14 @@ class PIDController:
         dtmax: largest step (default inf).
         safety: factor < 1 on the predicted optimal h.
         factormin, factormax: bounds of the factor by which h changes per step.
-        predictive: bound the factor by Gustafsson's predictive controller (above); False gives
-            diffrax's controller. Static.
+        failfactor: the factor on h after a failed solve (at least ``factormin``): 0.5 halves h,
+            as Radau5 does after a Newton failure (Hairer and Wanner, Sec. IV.8); diffrax cuts by
+            ``factormin``. A failed solve says the step was too long for the solve, not by how
+            much: a cut by 0.2 leaves the estimate so small that the controller grows h about
+            four times and fails again (docs/adaptive.md, "What goes wrong at loose
+            tolerances").
+        predictive: bound the factor by Gustafsson's predictive controller (above); False (with
+            ``failfactor=factormin``) gives diffrax's controller. Static.
     """
 
     rtol: float
@@ -66,6 +72,7 @@ class PIDController:
     safety: float = 0.9
     factormin: float = 0.2
     factormax: float = 10.0
+    failfactor: float = 0.5
     predictive: bool = dataclasses.field(default=True, metadata=dict(static=True))
 
     def next_factor(self, err, err_prev, err_prev2, order, accepted, h_ratio):
@@ -83,7 +90,7 @@ class PIDController:
         if self.predictive:
             trend = self.safety * h_ratio * (jnp.maximum(err_prev, 1e-2) * inverse(err) ** 2) ** (1 / order)
             factor = jnp.where(accepted & jnp.isfinite(trend), jnp.minimum(factor, trend), factor)
-        factor = jnp.where(jnp.isfinite(err), factor, self.factormin)
+        factor = jnp.where(jnp.isfinite(err), factor, jnp.maximum(self.failfactor, self.factormin))
         upper = jnp.where(accepted, self.factormax, 1.0)
         return jnp.clip(factor, self.factormin, upper)
 

@@ -68,12 +68,13 @@ def check_controller(controller, method, batch=None):
     bounds = {
         "rtol": lambda v: v > 0, "atol": lambda v: v > 0, "safety": lambda v: (v > 0) & (v <= 1),
         "factormin": lambda v: (v > 0) & (v < 1), "factormax": lambda v: v > 1,
+        "failfactor": lambda v: (v > 0) & (v < 1),
         "dtmin": lambda v: v >= 0, "dtmax": lambda v: v > 0,
     }
     for name, ok in bounds.items():
         if name in values and not np.all(ok(values[name])):
             raise ValueError(f"controller.{name} out of range: got {values[name]} (rtol, atol > 0; 0 < safety <= 1; "
-                             "0 < factormin < 1 < factormax; 0 <= dtmin < dtmax).")
+                             "0 < factormin < 1 < factormax; 0 < failfactor < 1; 0 <= dtmin < dtmax).")
     for name in ("pcoeff", "icoeff", "dcoeff"):
         if name in values and not np.all(np.isfinite(values[name])):
             raise ValueError(f"controller.{name} must be finite, got {values[name]}.")
