@@ -90,7 +90,7 @@ class PIDController:
         if self.predictive:
             trend = self.safety * h_ratio * (jnp.maximum(err_prev, 1e-2) * inverse(err) ** 2) ** (1 / order)
             factor = jnp.where(accepted & jnp.isfinite(trend), jnp.minimum(factor, trend), factor)
-        factor = jnp.where(jnp.isfinite(err), factor, jnp.maximum(self.failfactor, self.factormin))
+        factor = jnp.where(jnp.isfinite(err), factor, self.failfactor)  # the clip below keeps factormin
         upper = jnp.where(accepted, self.factormax, 1.0)
         return jnp.clip(factor, self.factormin, upper)
 

@@ -478,13 +478,13 @@ def _block(problem, c, inverse, size):
     # that reads them (the selects below, the packed carries), which costs more than the rest
     take, going, failed, backtrack, rejected, accepted, watch, tentative = jax.lax.optimization_barrier(
         (take, going, failed, backtrack, rejected, done & accept_here, watch, tentative))
+    status = jnp.where(failed, Status.NONFINITE, c["status"])
     if problem.matrix_cap is not None and inverse is not KRYLOV:
         # under a controller, a member that asks for one matrix too many fails: the controller
         # retries the element shorter, which costs less than more matrices at this h
         spent = going & ~failed & ~backtrack & asks & (c["matrices"] >= problem.matrix_cap)
         going, failed = going & ~spent, failed | spent
-    else:
-        spent = jnp.zeros_like(going)
+        status = jnp.where(spent, Status.NEWTON_MAX_ITERATIONS, status)
     asked = c["asked"] | (going & ~failed & ~backtrack & asks & problem.newton)
     restart = asked | backtrack
     # An accepted iterate gets one more update from its residual, already known: a product, no
@@ -504,7 +504,7 @@ def _block(problem, c, inverse, size):
         rate=jnp.where(moving, jnp.where(restart, jnp.nan, rate), c["rate"]),
         r_size=jnp.where(take, r_size, c["r_size"]), iterations=iterations, watch=watch,
         ref_size=jnp.where(tentative, c["r_size"], c["ref_size"]),
-        status=jnp.where(spent, Status.NEWTON_MAX_ITERATIONS, jnp.where(failed, Status.NONFINITE, c["status"])),
+        status=status,
     ))
 
 

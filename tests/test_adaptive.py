@@ -22,6 +22,34 @@ def error_after_one_orbit(sol):
     return float(np.max(np.abs(np.concatenate([sol.q[-1] - Q0, sol.p[-1] - P0]))))
 
 
+def two_orbits_from_apocentre(e):
+    """Kepler with eccentricity e over two orbits from apocentre: ``(H, q0, p0, T, z1)``, z1 the
+    exact final state."""
+    T2 = 4 * np.pi
+    q0, p0 = (jnp.asarray(x) for x in helpers.kepler_exact(np.pi, e))
+    return helpers.kepler(e)[0], q0, p0, T2, np.concatenate(helpers.kepler_exact(np.pi + T2, e))
+
+
+def distance(sol, z1):
+    """Max-norm distance of a run's final state from z1."""
+    return float(np.max(np.abs(np.concatenate([sol.q[-1], sol.p[-1]]) - z1)))
+
+
+def count_matrices(monkeypatch, log):
+    """Append -1 to ``log`` for every Newton matrix, through an ordered host callback in
+    ``_solve.block_jacobians``, the one function that computes them (cached traces cleared)."""
+    from galerkin_jax import _solve
+
+    jacobians = _solve.block_jacobians
+
+    def counted(residual, Z):
+        jax.debug.callback(lambda: log.append(-1), ordered=True)
+        return jacobians(residual, Z)
+
+    monkeypatch.setattr(_solve, "block_jacobians", counted)
+    jax.clear_caches()
+
+
 def test_error_falls_with_the_tolerance():
     """Kepler e = 0.5 over one orbit with cG(4): the error falls monotonically with rtol = atol.
     The embedded estimate has order 5 and the method's local error order 9, so the error falls
@@ -56,16 +84,13 @@ def test_the_predictive_controller_follows_the_way_into_a_pericentre():
     term follows the shrinking steps (4 rejections, the same 131 accepted steps, 1087 iterations
     against 1505) and both end within 1e-14 of the exact orbit. Margins: the rejections at most
     10 % of the steps against at least 30 % without the term; iterations at most 0.8x."""
-    e, T2 = 0.9, 4 * np.pi
-    He, _, _ = helpers.kepler(e)
-    q0, p0 = (jnp.asarray(x) for x in helpers.kepler_exact(np.pi, e))
-    z1 = np.concatenate(helpers.kepler_exact(np.pi + T2, e))
+    He, q0, p0, T2, z1 = two_orbits_from_apocentre(0.9)
     runs = {}
     for predictive in (True, False):
         sol = gj.integrate(He, q0, p0, method=gj.CG(6, gj.gauss_legendre(6)), h=1e-3 * T2, t1=T2,
                            controller=pid(1e-8, predictive=predictive), error_estimate=False)
         assert int(sol.status) == 0
-        assert np.max(np.abs(np.concatenate([sol.q[-1], sol.p[-1]]) - z1)) < 1e-13
+        assert distance(sol, z1) < 1e-13
         runs[predictive] = {k: int(sol.stats[k]) for k in ("num_steps", "num_rejected_steps", "num_newton_iterations")}
     steps = runs[True]["num_steps"]
     assert abs(steps - runs[False]["num_steps"]) <= 0.05 * steps
@@ -82,26 +107,14 @@ def test_a_loose_tolerance_keeps_to_the_fixed_point(monkeypatch):
     fixed point after ``newton_stretch`` elements): measured 1 matrix, the same 50 steps and
     the same final error, 3.4e-12. Matrices counted through a host callback in
     ``_solve.block_jacobians``, the one function that computes them; bound 4."""
-    from galerkin_jax import _solve
-
     matrices = []
-    jacobians = _solve.block_jacobians
-
-    def counted(residual, Z):
-        jax.debug.callback(lambda: matrices.append(1))
-        return jacobians(residual, Z)
-
-    monkeypatch.setattr(_solve, "block_jacobians", counted)
-    jax.clear_caches()  # trace again, through the wrapper
-    e, T2 = 0.9, 4 * np.pi
-    He, _, _ = helpers.kepler(e)
-    q0, p0 = (jnp.asarray(x) for x in helpers.kepler_exact(np.pi, e))
+    count_matrices(monkeypatch, matrices)
+    He, q0, p0, T2, z1 = two_orbits_from_apocentre(0.9)
     sol = gj.integrate(He, q0, p0, method=gj.CG(8, gj.gauss_legendre(8)), h=1e-3 * T2, t1=T2,
                        controller=pid(1e-6), error_estimate=False)
     jax.effects_barrier()
     assert int(sol.status) == 0
-    z1 = np.concatenate(helpers.kepler_exact(np.pi + T2, e))
-    assert np.max(np.abs(np.concatenate([sol.q[-1], sol.p[-1]]) - z1)) < 1e-10
+    assert distance(sol, z1) < 1e-10
     assert 1 <= len(matrices) <= 4
     monkeypatch.undo()
     jax.clear_caches()
@@ -124,24 +137,16 @@ def test_a_step_too_long_for_the_solve_fails_after_two_matrices(monkeypatch):
     from galerkin_jax import _adaptive, _solve
 
     log = []
-    jacobians, solve = _solve.block_jacobians, _adaptive.solve
-
-    def counted(residual, Z):
-        jax.debug.callback(lambda: log.append(-1), ordered=True)
-        return jacobians(residual, Z)
+    solve = _adaptive.solve
 
     def attempt(*args):
         out = solve(*args)
         jax.debug.callback(lambda status: log.append(int(status)), out[3], ordered=True)
         return out
 
-    monkeypatch.setattr(_solve, "block_jacobians", counted)
     monkeypatch.setattr(_adaptive, "solve", attempt)
-    jax.clear_caches()  # trace again, through the wrappers
-    e, T2 = 0.9, 4 * np.pi
-    He, _, _ = helpers.kepler(e)
-    q0, p0 = (jnp.asarray(x) for x in helpers.kepler_exact(np.pi, e))
-    z1 = np.concatenate(helpers.kepler_exact(np.pi + T2, e))
+    count_matrices(monkeypatch, log)  # clears the cached traces: both wrappers are traced
+    He, q0, p0, T2, z1 = two_orbits_from_apocentre(0.9)
     runs = {}
     for cap in (2, 48):
         log.clear()
@@ -150,7 +155,7 @@ def test_a_step_too_long_for_the_solve_fails_after_two_matrices(monkeypatch):
                            solver=gj.SolverOptions(attempt_matrices=cap))
         jax.effects_barrier()
         assert int(sol.status) == 0
-        assert np.max(np.abs(np.concatenate([sol.q[-1], sol.p[-1]]) - z1)) < 1e-7
+        assert distance(sol, z1) < 1e-7
         per, matrices = [], 0
         for entry in log:  # -1: a matrix; else an attempt's solve status
             if entry < 0:
@@ -178,17 +183,14 @@ def test_a_failed_solve_halves_h():
     c = pid(1e-6)
     assert float(c.next_factor(jnp.inf, 0.5, 1.0, 5, False, 1.0)) == 0.5
     assert float(pid(1e-6, factormin=0.7).next_factor(jnp.inf, 0.5, 1.0, 5, False, 1.0)) == pytest.approx(0.7)
-    e, T2 = 0.9, 4 * np.pi
-    He, _, _ = helpers.kepler(e)
-    q0, p0 = (jnp.asarray(x) for x in helpers.kepler_exact(np.pi, e))
-    z1 = np.concatenate(helpers.kepler_exact(np.pi + T2, e))
+    He, q0, p0, T2, z1 = two_orbits_from_apocentre(0.9)
     run = jax.jit(lambda fail: gj.integrate(He, q0, p0, method=gj.CG(8, gj.gauss_legendre(8)), h=1e-3 * T2, t1=T2,
                                             controller=pid(1e-4, failfactor=fail), error_estimate=False))
     stats = {}
     for fail in (0.5, 0.2):
         sol = run(fail)
         assert int(sol.status) == 0
-        assert np.max(np.abs(np.concatenate([sol.q[-1], sol.p[-1]]) - z1)) < 1e-7
+        assert distance(sol, z1) < 1e-7
         stats[fail] = (int(sol.stats["num_rejected_steps"]), int(sol.stats["num_steps"]) + int(sol.stats["num_rejected_steps"]))
     assert stats[0.5][0] <= 0.6 * stats[0.2][0]
     assert stats[0.5][1] <= 0.8 * stats[0.2][1]
