@@ -5,7 +5,8 @@ Three step rules share it:
 * ``PIDController``: each attempt solves one element of size h, estimates its error
   (``embedded_error``) and is accepted or rejected; h changes by the controller's factor
   either way. A failed solve or a non-finite state rejects the step, and ends the run only
-  below ``dtmin``. The root finder is told that h varies (``Options.varying_steps``).
+  below ``dtmin``. The root finder is told that h varies (``Options.varying_steps``) and that
+  its matrices serve few elements (``Options.short_lived_matrices``).
 * ``TimeTransform``: the run integrates the Poincare-transformed K (``poincare``) in tau with
   the constant step h; the time is the state's coordinate ``clock``. The element that passes
   t1 is shortened in tau until it lands on t1 (Newton on its end time, whose tau-derivative
@@ -172,9 +173,10 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     if isinstance(controller, PIDController):
         rule, memory = _pid_rule(controller, H_bound, m, tiny)
         h0 = jnp.minimum(h0, controller.dtmax)
-        options = dataclasses.replace(options, varying_steps=True)
+        options = dataclasses.replace(options, varying_steps=True, short_lived_matrices=True)
     elif clock is not None:
         rule, memory = _transform_rule(s, clock, view, tiny)
+        options = dataclasses.replace(options, short_lived_matrices=True)
     else:
         rule, memory = _constant_rule, {}
     g = None if event is None else (lambda t, z: event.g(t, *view(z)))

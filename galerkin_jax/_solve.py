@@ -38,7 +38,8 @@ the fields of ``SolverOptions`` (named in parentheses), each with its unit and r
   A small system that switched stays with Newton (its Newton update costs two to three
   fixed-point ones); a large one, whose update costs a product with an n x n matrix or a
   Krylov solve, for ``newton_stretch`` elements, then tries the fixed point again, and so
-  does a small one whose h changes from element to element (``Options.varying_steps``).
+  does a small one whose matrix serves few elements (``Options.short_lived_matrices``: a
+  controller's varying h, a time-transformed run).
   Under a controller an element of any size that asks for more than ``attempt_matrices``
   dense matrices fails, and the controller retries it with a shorter h.
   Small systems solve a run's first element by Newton: the predictor has no history yet.
@@ -159,17 +160,23 @@ class Options:
         solver: ``SolverOptions``.
         fixed_point: the method has a fixed-point iteration; else every element is Newton's,
             by Newton-Krylov where no dense matrix is kept, whatever ``solver.krylov`` says.
-        varying_steps: h changes from element to element (a ``PIDController``'s run): a small
-            system follows the Newton policy of a large one (``SolverOptions``: the fixed
-            point's patience, the refresh rate, ``newton_stretch``). A matrix taken for one h
-            serves few later elements, so it costs what a large system's does: a small
-            system's policy (Newton early, kept for good) would take a fresh matrix in every
-            element after a loose tolerance's first long step.
+        varying_steps: h changes from element to element (a ``PIDController``'s run): an
+            element that asks for more than ``SolverOptions.attempt_matrices`` dense matrices
+            fails, and the controller retries it shorter.
+        short_lived_matrices: a Newton matrix serves few later elements, so a small system
+            follows the Newton policy of a large one (``SolverOptions``: the fixed point's
+            patience, the refresh rate, ``newton_stretch``): a small system's policy (Newton
+            early, kept for good) would take a fresh matrix in nearly every element. Set under
+            a ``PIDController``, whose h changes in every element, and in a time-transformed
+            run, whose constant step in tau is as long against the local time scale all along
+            the orbit (a matrix is out of date a few elements on) and whose Jacobian holds the
+            derivatives of the step density s (the default s: H's third).
     """
 
     solver: SolverOptions
     fixed_point: bool = True
     varying_steps: bool = False
+    short_lived_matrices: bool = False
 
     @property
     def max_iterations(self):
@@ -276,7 +283,7 @@ class _Problem:
     scale: jax.Array  # (B,): the size of the state the unknowns are increments of
     solver: SolverOptions
     newton: bool  # a Newton phase is there to ask for
-    large: bool  # the Newton policy of a large system: n > ``small``, or ``Options.varying_steps``
+    large: bool  # the Newton policy of a large system: n > ``small``, or ``Options.short_lived_matrices``
     # the fresh dense Newton matrices a member may take in one element before it fails, or None
     # (no cap): ``SolverOptions.attempt_matrices`` under a controller (``Options.varying_steps``)
     matrix_cap: object = None
@@ -676,7 +683,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
     solver = options.solver
     krylov = matrix.inverse is None and _krylov(options)
     problem = _Problem(fn, params, scale, solver, matrix.inverse is not None or krylov,
-                       n > solver.small or options.varying_steps,
+                       n > solver.small or options.short_lived_matrices,
                        solver.attempt_matrices if options.varying_steps else None)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
     # the watchdog watches an element whose predictor is the constant guess (``first``):

@@ -33,7 +33,9 @@ class SolverOptions:
         small (unknowns): systems up to this size solve their first element by Newton (the
             predictor has no history yet and a Newton update costs two to three fixed-point
             ones), stay with Newton once switched, and refresh their matrix at a low rate;
-            under a ``PIDController``, whose h changes in every element, only the first.
+            under a ``PIDController`` (h changes in every element) and in a time-transformed
+            run (its matrices serve few elements: ``_solve.Options.short_lived_matrices``)
+            only the first.
         sweep_dimension (degrees of freedom d): partitioned methods on states of more than
             this iterate the Gauss-Seidel sweep's residual (``_march.element_residual``), which
             contracts at about the square of the plain fixed point's rate; below it the sweep's
