@@ -22,12 +22,12 @@ def error_after_one_orbit(sol):
     return float(np.max(np.abs(np.concatenate([sol.q[-1] - Q0, sol.p[-1] - P0]))))
 
 
-def two_orbits_from_apocentre(e):
-    """Kepler with eccentricity e over two orbits from apocentre: ``(H, q0, p0, T, z1)``, z1 the
-    exact final state."""
-    T2 = 4 * np.pi
+def orbits_from_apocentre(e, orbits=2):
+    """Kepler with eccentricity e over ``orbits`` orbits from apocentre: ``(H, q0, p0, T, z1)``,
+    z1 the exact final state."""
+    T = orbits * 2 * np.pi
     q0, p0 = (jnp.asarray(x) for x in helpers.kepler_exact(np.pi, e))
-    return helpers.kepler(e)[0], q0, p0, T2, np.concatenate(helpers.kepler_exact(np.pi + T2, e))
+    return helpers.kepler(e)[0], q0, p0, T, np.concatenate(helpers.kepler_exact(np.pi + T, e))
 
 
 def distance(sol, z1):
@@ -84,7 +84,7 @@ def test_the_predictive_controller_follows_the_way_into_a_pericentre():
     term follows the shrinking steps (4 rejections, the same 131 accepted steps, 1087 iterations
     against 1505) and both end within 1e-14 of the exact orbit. Margins: the rejections at most
     10 % of the steps against at least 30 % without the term; iterations at most 0.8x."""
-    He, q0, p0, T2, z1 = two_orbits_from_apocentre(0.9)
+    He, q0, p0, T2, z1 = orbits_from_apocentre(0.9)
     runs = {}
     for predictive in (True, False):
         sol = gj.integrate(He, q0, p0, method=gj.CG(6, gj.gauss_legendre(6)), h=1e-3 * T2, t1=T2,
@@ -109,7 +109,7 @@ def test_a_loose_tolerance_keeps_to_the_fixed_point(monkeypatch):
     ``_solve.block_jacobians``, the one function that computes them; bound 4."""
     matrices = []
     count_matrices(monkeypatch, matrices)
-    He, q0, p0, T2, z1 = two_orbits_from_apocentre(0.9)
+    He, q0, p0, T2, z1 = orbits_from_apocentre(0.9)
     sol = gj.integrate(He, q0, p0, method=gj.CG(8, gj.gauss_legendre(8)), h=1e-3 * T2, t1=T2,
                        controller=pid(1e-6), error_estimate=False)
     jax.effects_barrier()
@@ -146,7 +146,7 @@ def test_a_step_too_long_for_the_solve_fails_after_two_matrices(monkeypatch):
 
     monkeypatch.setattr(_adaptive, "solve", attempt)
     count_matrices(monkeypatch, log)  # clears the cached traces: both wrappers are traced
-    He, q0, p0, T2, z1 = two_orbits_from_apocentre(0.9)
+    He, q0, p0, T2, z1 = orbits_from_apocentre(0.9)
     runs = {}
     for cap in (2, 48):
         log.clear()
@@ -183,7 +183,7 @@ def test_a_failed_solve_halves_h():
     c = pid(1e-6)
     assert float(c.next_factor(jnp.inf, 0.5, 1.0, 5, False, 1.0)) == 0.5
     assert float(pid(1e-6, factormin=0.7).next_factor(jnp.inf, 0.5, 1.0, 5, False, 1.0)) == pytest.approx(0.7)
-    He, q0, p0, T2, z1 = two_orbits_from_apocentre(0.9)
+    He, q0, p0, T2, z1 = orbits_from_apocentre(0.9)
     run = jax.jit(lambda fail: gj.integrate(He, q0, p0, method=gj.CG(8, gj.gauss_legendre(8)), h=1e-3 * T2, t1=T2,
                                             controller=pid(1e-4, failfactor=fail), error_estimate=False))
     stats = {}
@@ -332,15 +332,16 @@ def test_a_time_transformed_small_system_keeps_its_fixed_point(monkeypatch):
     roots). Bounds: 25 matrices (a quarter of the old count), the energy error 1e-6."""
     log = []
     count_matrices(monkeypatch, log)
-    He = helpers.kepler(0.9)[0]
-    q0, p0 = (jnp.asarray(x) for x in helpers.kepler_exact(np.pi, 0.9))
-    sol = gj.integrate(He, q0, p0, method=CG4, h=0.8, t1=10 * np.pi, controller=gj.TimeTransform(), dense=True,
+    He, q0, p0, T5, _ = orbits_from_apocentre(0.9, orbits=5)
+    sol = gj.integrate(He, q0, p0, method=CG4, h=0.8, t1=T5, controller=gj.TimeTransform(), dense=True,
                        error_estimate=False)
     jax.effects_barrier()
     assert int(sol.status) == 0 and int(sol.stats["num_steps"]) == 129
     assert len(log) <= 25
     energy = jax.vmap(He)(*sol.dense.view(sol.dense.z[:130])) - He(q0, p0)
     assert float(jnp.max(jnp.abs(energy))) < 1e-6
+    monkeypatch.undo()
+    jax.clear_caches()
 
 
 def test_events_lie_on_the_section_plane():
