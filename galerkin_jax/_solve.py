@@ -39,7 +39,10 @@ the fields of ``SolverOptions`` (named in parentheses), each with its unit and r
   fixed-point ones); a large one, whose update costs a product with an n x n matrix or a
   Krylov solve, for ``newton_stretch`` elements, then tries the fixed point again, and so
   does a small one whose matrix serves few elements (``Options.short_lived_matrices``: a
-  controller's varying h, a time-transformed run).
+  controller's varying h, a time-transformed run); there a stretch ends at the first of its
+  elements that needs a fresh matrix (the kept one no longer serves: Newton from the
+  continued polynomial costs a matrix an element and often ends at another root, where the
+  fixed point, at the next h, may converge).
   Under a controller an element of any size that asks for more than ``attempt_matrices``
   dense matrices fails, and the controller retries it with a shorter h.
   Small systems solve a run's first element by Newton: the predictor has no history yet.
@@ -170,7 +173,8 @@ class Options:
             a ``PIDController``, whose h changes in every element, and in a time-transformed
             run, whose constant step in tau is as long against the local time scale all along
             the orbit (a matrix is out of date a few elements on) and whose Jacobian holds the
-            derivatives of the step density s (the default s: H's third).
+            derivatives of the step density s (the default s: H's third). A stretch of Newton
+            ends at the first of its elements that needs a fresh matrix.
     """
 
     solver: SolverOptions
@@ -715,6 +719,9 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
     # elements of Newton left: one fewer for a member in Newton mode, a stretch for one that switched
     switched = solver.newton_stretch if problem.large else ALWAYS
     left = jnp.where(newton, matrix.newton, jnp.where(c["newton"], switched, 0)) - c["newton"]
+    if options.short_lived_matrices:
+        # a stretch goes on while its matrix serves: an element of it that needs a fresh one ends it
+        left = jnp.where(newton & (c["matrices"] > 0), 0, left)
     matrix = Matrix.of(left, matrix.pending & ~c["fresh"], inverse, reference)
     lenient = c["lenient"] & (status == Status.SUCCESS)
     return Z, matrix, c["iterations"], status, jnp.broadcast_to(c.get("trips", c["iterations"]), (B,)), lenient

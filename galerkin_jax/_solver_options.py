@@ -59,7 +59,9 @@ class SolverOptions:
             ``max_iterations``. Every step of the watchdog (``watch``) and every damped step
             asks for a fresh matrix, so under a controller they get at most this many.
         newton_stretch (elements): a large system that switched to Newton stays with it this
-            long, then tries the fixed point again (one hard element does not cost it the run).
+            long, then tries the fixed point again (one hard element does not cost it the run);
+            under a controller or a time transformation, where h or the state moves on fast, only
+            while its matrix serves: an element of the stretch that needs a fresh one ends it.
         fixed_point_block (iterations): fixed-point updates per check (a check costs more
             kernels than an update).
         first_block (iterations): the first block of an element of more than ``small``

@@ -50,6 +50,21 @@ def count_matrices(monkeypatch, log):
     jax.clear_caches()
 
 
+def two_orbits_counting_matrices(monkeypatch, tol):
+    """Kepler e = 0.9 over two orbits from apocentre, cG(8) + Gauss 8 under ``pid(tol)``:
+    ``(sol, z1, matrices)``, the Newton matrices counted (``count_matrices``; the hook is
+    undone and the cached traces cleared before it returns)."""
+    log = []
+    count_matrices(monkeypatch, log)
+    He, q0, p0, T2, z1 = orbits_from_apocentre(0.9)
+    sol = gj.integrate(He, q0, p0, method=gj.CG(8, gj.gauss_legendre(8)), h=1e-3 * T2, t1=T2,
+                       controller=pid(tol), error_estimate=False)
+    jax.effects_barrier()
+    monkeypatch.undo()
+    jax.clear_caches()
+    return sol, z1, len(log)
+
+
 def test_error_falls_with_the_tolerance():
     """Kepler e = 0.5 over one orbit with cG(4): the error falls monotonically with rtol = atol.
     The embedded estimate has order 5 and the method's local error order 9, so the error falls
@@ -107,17 +122,10 @@ def test_a_loose_tolerance_keeps_to_the_fixed_point(monkeypatch):
     fixed point after ``newton_stretch`` elements): measured 1 matrix, the same 50 steps and
     the same final error, 3.4e-12. Matrices counted through a host callback in
     ``_solve.block_jacobians``, the one function that computes them; bound 4."""
-    matrices = []
-    count_matrices(monkeypatch, matrices)
-    He, q0, p0, T2, z1 = orbits_from_apocentre(0.9)
-    sol = gj.integrate(He, q0, p0, method=gj.CG(8, gj.gauss_legendre(8)), h=1e-3 * T2, t1=T2,
-                       controller=pid(1e-6), error_estimate=False)
-    jax.effects_barrier()
+    sol, z1, matrices = two_orbits_counting_matrices(monkeypatch, 1e-6)
     assert int(sol.status) == 0
     assert distance(sol, z1) < 1e-10
-    assert 1 <= len(matrices) <= 4
-    monkeypatch.undo()
-    jax.clear_caches()
+    assert 1 <= matrices <= 4
 
 
 def test_a_step_too_long_for_the_solve_fails_after_two_matrices(monkeypatch):
@@ -128,10 +136,10 @@ def test_a_step_too_long_for_the_solve_fails_after_two_matrices(monkeypatch):
     estimate rejects. Under a controller an element that asks for a third matrix fails
     (``SolverOptions.attempt_matrices``) and the controller retries it shorter. With diffrax's
     cut after a failed solve (``failfactor=factormin``, 0.2), whose cycle of failures gives the
-    cap the most to do (``test_a_failed_solve_halves_h`` has the default). Measured: 80
-    matrices in 64 attempts (17 failed at the cap, at most 2 each), against 245 in 73 (at most
-    13) with the cap at 48 (the iteration cap: no cap on matrices); final errors 5.4e-9 and
-    9.6e-9. Bounds: at most 2 per attempt, at least 5 attempts that fail (status 1) on their
+    cap the most to do (``test_a_failed_solve_halves_h`` has the default). Measured: 118
+    matrices in 95 attempts (35 failed at the cap, at most 2 each), against 358 in 89 (at most
+    13) with the cap at 48 (the iteration cap: no cap on matrices); final errors 2.1e-8 and
+    3.6e-9. Bounds: at most 2 per attempt, at least 5 attempts that fail (status 1) on their
     second matrix (the cap is reached), at least 100 matrices in the uncapped run (the hooks
     counted), half of those with the cap, error 1e-7."""
     from galerkin_jax import _adaptive, _solve
@@ -173,13 +181,29 @@ def test_a_step_too_long_for_the_solve_fails_after_two_matrices(monkeypatch):
     jax.clear_caches()
 
 
+def test_a_stretch_of_newton_ends_where_its_matrix_no_longer_serves(monkeypatch):
+    """Kepler e = 0.9 over two orbits from apocentre, cG(8) + Gauss 8, rtol = atol = 1e-5: near
+    apocentre some steps are beyond the fixed point's reach, and the element switches to
+    Newton. Under a controller the next ``newton_stretch`` elements started with Newton too,
+    each with a fresh matrix (the kept one was taken at another h and state) and often ending
+    at another root that the estimate rejects, where the fixed point at the next h converges.
+    Now an element of a stretch that needs a fresh matrix ends it
+    (``_solve.Options.short_lived_matrices``). Measured: 7 matrices in 45 attempts, against 30
+    in 45 before; the same 40 steps and final error, 1.9e-10. Bounds: 15 matrices (half the old
+    count), error 1e-9."""
+    sol, z1, matrices = two_orbits_counting_matrices(monkeypatch, 1e-5)
+    assert int(sol.status) == 0
+    assert distance(sol, z1) < 1e-9
+    assert 1 <= matrices <= 15
+
+
 def test_a_failed_solve_halves_h():
     """After a failed solve the factor is ``max(failfactor, factormin)``, 0.5 by default (Radau5
     after a Newton failure). Cutting by factormin = 0.2 left the estimate of the next, accepted
     step so small that the controller grew h about four times and failed again: on Kepler
-    e = 0.9 over two orbits from apocentre, cG(8) + Gauss 8 at rtol = atol = 1e-4, measured 8
-    rejections in 43 attempts with 0.5 against 19 in 64 with 0.2, final errors 8.0e-9 and
-    5.4e-9. Bounds 0.6 and 0.8 of the 0.2 run's rejections and attempts, error 1e-7."""
+    e = 0.9 over two orbits from apocentre, cG(8) + Gauss 8 at rtol = atol = 1e-4, measured 7
+    rejections in 41 attempts with 0.5 against 37 in 95 with 0.2, final errors 1.6e-8 and
+    2.1e-8. Bounds 0.6 and 0.8 of the 0.2 run's rejections and attempts, error 1e-7."""
     c = pid(1e-6)
     assert float(c.next_factor(jnp.inf, 0.5, 1.0, 5, False, 1.0)) == 0.5
     assert float(pid(1e-6, factormin=0.7).next_factor(jnp.inf, 0.5, 1.0, 5, False, 1.0)) == pytest.approx(0.7)
@@ -326,9 +350,10 @@ def test_a_time_transformed_small_system_keeps_its_fixed_point(monkeypatch):
     the extended element has 24 unknowns, a small system, whose policy (Newton once switched,
     for good, refreshed at a low rate) suits a fixed h. A time-transformed run's step is as
     long against the local time scale all along the orbit, so a matrix is out of date a few
-    elements on (``_solve.Options.short_lived_matrices``). Measured: 9 matrices in 129 steps,
-    against 106 with the small system's policy (2.3-2.7x the run time per step on 1000 orbits,
-    ``benchmarks/bench_adaptive.py`` part c); largest energy error 4.1e-7 either way (the same
+    elements on (``_solve.Options.short_lived_matrices``). Measured: 4 matrices in 129 steps (9
+    before a stretch of Newton ended at an element that needs a fresh matrix), against 106 with
+    the small system's policy (2.3-2.7x the run time per step on 1000 orbits,
+    ``benchmarks/bench_adaptive.py`` part c); largest energy error 4.1e-7 each way (the same
     roots). Bounds: 25 matrices (a quarter of the old count), the energy error 1e-6."""
     log = []
     count_matrices(monkeypatch, log)
