@@ -174,7 +174,8 @@ class Options:
             run, whose constant step in tau is as long against the local time scale all along
             the orbit (a matrix is out of date a few elements on) and whose Jacobian holds the
             derivatives of the step density s (the default s: H's third). A stretch of Newton
-            ends at the first of its elements that needs a fresh matrix.
+            ends at the first of its elements that needs a fresh matrix (where the method has
+            a fixed point to go back to).
     """
 
     solver: SolverOptions
@@ -719,7 +720,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
     # elements of Newton left: one fewer for a member in Newton mode, a stretch for one that switched
     switched = solver.newton_stretch if problem.large else ALWAYS
     left = jnp.where(newton, matrix.newton, jnp.where(c["newton"], switched, 0)) - c["newton"]
-    if options.short_lived_matrices:
+    if options.short_lived_matrices and options.fixed_point:
         # a stretch goes on while its matrix serves: an element of it that needs a fresh one ends it
         left = jnp.where(newton & (c["matrices"] > 0), 0, left)
     matrix = Matrix.of(left, matrix.pending & ~c["fresh"], inverse, reference)
