@@ -50,19 +50,26 @@ def count_matrices(monkeypatch, log):
     jax.clear_caches()
 
 
-def two_orbits_counting_matrices(monkeypatch, tol):
-    """Kepler e = 0.9 over two orbits from apocentre, cG(8) + Gauss 8 under ``pid(tol)``:
-    ``(sol, z1, matrices)``, the Newton matrices counted (``count_matrices``; the hook is
+def matrices_of(monkeypatch, run):
+    """``(run(), n)``, n the Newton matrices ``run`` computed (``count_matrices``; the hook is
     undone and the cached traces cleared before it returns)."""
     log = []
     count_matrices(monkeypatch, log)
-    He, q0, p0, T2, z1 = orbits_from_apocentre(0.9)
-    sol = gj.integrate(He, q0, p0, method=gj.CG(8, gj.gauss_legendre(8)), h=1e-3 * T2, t1=T2,
-                       controller=pid(tol), error_estimate=False)
+    out = run()
     jax.effects_barrier()
     monkeypatch.undo()
     jax.clear_caches()
-    return sol, z1, len(log)
+    return out, len(log)
+
+
+def two_orbits_counting_matrices(monkeypatch, tol):
+    """Kepler e = 0.9 over two orbits from apocentre, cG(8) + Gauss 8 under ``pid(tol)``:
+    ``(sol, z1, matrices)`` (``matrices_of``)."""
+    He, q0, p0, T2, z1 = orbits_from_apocentre(0.9)
+    sol, matrices = matrices_of(monkeypatch, lambda: gj.integrate(
+        He, q0, p0, method=gj.CG(8, gj.gauss_legendre(8)), h=1e-3 * T2, t1=T2, controller=pid(tol),
+        error_estimate=False))
+    return sol, z1, matrices
 
 
 def test_error_falls_with_the_tolerance():
@@ -355,18 +362,13 @@ def test_a_time_transformed_small_system_keeps_its_fixed_point(monkeypatch):
     the small system's policy (2.3-2.7x the run time per step on 1000 orbits,
     ``benchmarks/bench_adaptive.py`` part c); largest energy error 4.1e-7 each way (the same
     roots). Bounds: 25 matrices (a quarter of the old count), the energy error 1e-6."""
-    log = []
-    count_matrices(monkeypatch, log)
     He, q0, p0, T5, _ = orbits_from_apocentre(0.9, orbits=5)
-    sol = gj.integrate(He, q0, p0, method=CG4, h=0.8, t1=T5, controller=gj.TimeTransform(), dense=True,
-                       error_estimate=False)
-    jax.effects_barrier()
+    sol, matrices = matrices_of(monkeypatch, lambda: gj.integrate(
+        He, q0, p0, method=CG4, h=0.8, t1=T5, controller=gj.TimeTransform(), dense=True, error_estimate=False))
     assert int(sol.status) == 0 and int(sol.stats["num_steps"]) == 129
-    assert len(log) <= 25
+    assert matrices <= 25
     energy = jax.vmap(He)(*sol.dense.view(sol.dense.z[:130])) - He(q0, p0)
     assert float(jnp.max(jnp.abs(energy))) < 1e-6
-    monkeypatch.undo()
-    jax.clear_caches()
 
 
 def test_events_lie_on_the_section_plane():
