@@ -17,6 +17,7 @@
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -189,18 +190,62 @@ def poincare(H, s, q0, p0, t0, args):
     """The time-transformed problem: ``(K, q~0, p~0, args~, s~)`` with the Poincare-transformed
     Hamiltonian ``K(q~, p~, args~) = s(q, p) (H(q, p) + p_t)`` on ``q~ = (q, t)``, ``p~ = (p, p_t)``,
     ``p_t(0) = -H(q0, p0)`` (module docstring), and ``s~(q, p)`` the step density bound to
-    ``args~``. H and s take ``args`` when it is not None; s None: ``default_step_density``.
+    ``args~``. H and s take ``args`` when it is not None; s None: ``default_step_density``, with
+    K's gradient in closed form (``_default_transformed``).
     """
     d = q0.shape[0]
-    bind = lambda f, a: f if a is None else (lambda q, p: f(q, p, a))
-    step_density = lambda a: default_step_density(bind(H, a[0]), a[1]) if s is None else bind(s, a[0])
+    step_density = lambda a: default_step_density(_bind(H, a[0]), a[1]) if s is None else _bind(s, a[0])
 
     def K(qt, pt, a):
         q, p = qt[:d], pt[:d]
-        return step_density(a)(q, p) * (bind(H, a[0])(q, p) + pt[d])
+        return step_density(a)(q, p) * (_bind(H, a[0])(q, p) + pt[d])
 
-    H0 = bind(H, args)(q0, p0)
-    extended = (args, field_norm(bind(H, args), q0, p0))
+    H0 = _bind(H, args)(q0, p0)
+    extended = (args, field_norm(_bind(H, args), q0, p0))
     qt0 = jnp.concatenate([q0, jnp.asarray(t0, q0.dtype)[None]])
     pt0 = jnp.concatenate([p0, -H0[None]])
-    return K, qt0, pt0, extended, step_density(extended)
+    return K if s is not None else _default_transformed(K, H, d), qt0, pt0, extended, step_density(extended)
+
+
+def _bind(f, args):
+    return f if args is None else (lambda q, p: f(q, p, args))
+
+
+def _default_transformed(K, H, d):
+    """``K`` of the default step density s = (F0 / |F|)^(3/4), with its gradient in closed form.
+
+    |F| = |J DH| = |DH| (J is orthogonal), so DK = (H + p_t) Ds + s DH with
+    Ds = -(3/4) s D^2H DH / |DH|^2: one Hessian-vector product, by forward mode over H's
+    gradient. ``jax.grad`` of K as written differentiates the reverse-mode |DH| in reverse mode
+    again, a program several times as large (the residual of every element holds DK). The
+    derivatives in ``args~`` (H's args and F0) are forward mode over K.
+    """
+
+    @jax.custom_jvp
+    def transformed(qt, pt, a):
+        return K(qt, pt, a)
+
+    @functools.partial(transformed.defjvp, symbolic_zeros=True)
+    def transformed_jvp(primals, tangents):
+        qt, pt, a = primals
+        dqt, dpt, da = tangents
+        q, p, H_a = qt[:d], pt[:d], _bind(H, a[0])
+        energy, dH = jax.value_and_grad(H_a, argnums=(0, 1))(q, p)
+        norm2 = sum(jnp.sum(g * g) for g in dH)
+        s = (a[1] * a[1] / norm2) ** 0.375
+        hessian_dH = jax.jvp(jax.grad(H_a, argnums=(0, 1)), (q, p), dH)[1]
+        slope = -0.75 * s * (energy + pt[d]) / norm2
+        gradient = (jnp.concatenate([slope * hessian_dH[0] + s * dH[0], jnp.zeros_like(qt[d:])]),
+                    jnp.concatenate([slope * hessian_dH[1] + s * dH[1], s[None]]))
+        tangent = sum(g @ t for g, t in zip(gradient, (dqt, dpt)) if not _symbolic_zero(t))
+        if not all(_symbolic_zero(t) for t in jax.tree.leaves(da, is_leaf=_symbolic_zero)):
+            da = jax.tree.map(lambda t, x: jnp.zeros_like(x) if _symbolic_zero(t) else t, da, a,
+                              is_leaf=_symbolic_zero)
+            tangent = tangent + jax.jvp(lambda a: K(qt, pt, a), (a,), (da,))[1]
+        return s * (energy + pt[d]), jnp.asarray(tangent, qt.dtype)
+
+    return transformed
+
+
+def _symbolic_zero(t):
+    return isinstance(t, jax.custom_derivatives.SymbolicZero)
