@@ -96,8 +96,7 @@ def local_error(H, q0, p0, W, increment, h):
     defect = _basis.combine(_basis.legendre_derivatives(alpha, J), W) - h * F
     start_jump = _basis.combine((-1.0) ** np.arange(J), W)
 
-    y = start_jump[None, :] + _basis.combine(S, defect)
-    for _ in range(J):
-        y = start_jump[None, :] + _basis.combine(S, h * tangent(y) + defect)
+    sweep = lambda y: start_jump[None, :] + _basis.combine(S, h * tangent(y) + defect)
+    y = jax.lax.fori_loop(0, J, lambda _, y: sweep(y), start_jump[None, :] + _basis.combine(S, defect))
     e = start_jump + _basis.combine(weights, h * tangent(y) + defect) + increment - jnp.sum(W, axis=0)
     return jnp.max(jnp.abs(e))
