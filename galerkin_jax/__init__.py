@@ -25,6 +25,7 @@ from ._solve import (
     status_message as status_message,
 )
 from ._accuracy import suggest_step_size as suggest_step_size
+from ._cache import use_compilation_cache as use_compilation_cache
 from ._checks import Float32Warning as Float32Warning
 from ._configs import Configs as Configs, grid as grid, pad_rule as pad_rule, stack_methods as stack_methods
 from ._sweep import SweepResult as SweepResult, sweep as sweep
@@ -82,4 +83,5 @@ __all__ = [
     "sweep",
     "trapezoid",
     "tune_rule",
+    "use_compilation_cache",
 ]

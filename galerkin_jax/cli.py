@@ -25,6 +25,7 @@ from . import _cli_output as output
 from . import _cli_specs as specs
 from . import _cli_summary as summary
 from . import _cli_sweep as sweeps
+from ._cache import CACHE_VARIABLE, compile_cache_folder, use_compilation_cache  # noqa: F401 (names of the command)
 from ._cli_specs import EXIT_BAD_OPTION, CliError
 
 EXIT_FAILED_SOLVE = 3
@@ -55,31 +56,17 @@ examples:
 """
 
 
-CACHE_VARIABLE = "GALERKIN_JAX_CACHE"
-
-
 ADAPTIVE_MAX_STEPS = 100_000  # steps of --tol / --time-transform: a run that needs more says so (status 4)
 SAVED_STATES = 2001  # states a run to --t-end saves, evenly in time, from the element polynomials
 
 
-def compile_cache_folder(environ=os.environ):
-    """Where the command keeps its compiled programs: ``$GALERKIN_JAX_CACHE`` (set but empty:
-    nowhere), else ``$XDG_CACHE_HOME/galerkin_jax/xla`` or ``~/.cache/galerkin_jax/xla``."""
-    if CACHE_VARIABLE in environ:
-        return environ[CACHE_VARIABLE] or None
-    base = environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "galerkin_jax", "xla")
-
-
 def console(argv=None):
     """The ``galerkin-jax`` script (and ``python -m galerkin_jax``): ``main`` with JAX's
-    persistent compilation cache in ``compile_cache_folder()``, so that a command run again
-    with the same shapes and methods loads its XLA programs instead of compiling them. Only
-    the script sets this global option; the library and ``main`` never do."""
-    folder = compile_cache_folder()
-    if folder:
-        jax.config.update("jax_compilation_cache_dir", folder)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # cache every program
+    persistent compilation cache in ``compile_cache_folder()`` (``gj.use_compilation_cache``),
+    so that a command run again with the same shapes and methods loads its XLA programs instead
+    of compiling them. The script sets this global option; ``main`` does not, and the library
+    only where a user calls ``use_compilation_cache``."""
+    use_compilation_cache()
     return main(argv)
 
 
