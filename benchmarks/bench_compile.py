@@ -1,0 +1,231 @@
+"""Time to the first answer: where a run's first call goes, beside diffrax's equivalent.
+
+    python benchmarks/bench_compile.py [--only kepler fput cli] [--name compile]
+
+For every public entry point and run kind, on Kepler (d = 2, cG(6) + Gauss 6, one orbit) and on
+the beta-FPUT chain (N = 64, cG(4) + Gauss 4), the first call of a fresh function in one
+process, split as JAX reports it (``jax.monitoring``): tracing and lowering (the first call's
+wall time less XLA's compilation and less the run), XLA's compilation (every backend compile
+the call triggers, the library's eager checks included), and the run (the second call). The
+program's size: StableHLO operations of the lowered module (``lowered.as_text()``, the count
+``tests/test_program_size.py`` budgets) and the kernels (fusions) XLA compiled, which set the
+compile time (about 4-8 ms each on this CPU). diffrax's equivalent runs in the same process,
+with the same state and span: Dopri8 with a constant step or with its PID controller (and
+Tsit5 for the run kinds the issue compared).
+
+``cli``: ``galerkin-jax run`` in a fresh process, cold and again with its compilation cache
+(the wall time of the command, and the compile time it prints). Results:
+``results/compile.json``.
+"""
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import galerkin_jax as gj
+from galerkin_jax import scenes
+
+sys.path.insert(0, os.path.dirname(__file__))
+from _common import write  # noqa: E402
+
+_EVENTS = {"compile": "/jax/core/compile/backend_compile_duration"}
+_durations = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **_: _durations.append(duration) if event == _EVENTS["compile"] else None)
+
+
+def program_size(fn, *args):
+    """``(stablehlo_ops, kernels)`` of ``jax.jit(fn)`` at ``args``: operations of the lowered
+    module and fusions of the compiled one."""
+    lowered = jax.jit(fn).lower(*args)
+    ops = sum(1 for line in lowered.as_text().splitlines() if re.match(r"\s*(%\S+ = )?\"?[a-z_]+\.[a-z_]", line))
+    kernels = len(re.findall(r" fusion\(", lowered.compile().as_text()))
+    return ops, kernels
+
+
+def first_call(make, sized=True):
+    """The first call of a fresh program (``make()`` builds the function and its arguments):
+    ``dict(total, trace_and_lower, compile, run, stablehlo_ops, kernels)`` in seconds; without
+    ``sized`` (a function that is not one jittable program) no sizes."""
+    jax.clear_caches()
+    fn, args = make()
+    _durations.clear()
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    total = time.perf_counter() - t0
+    compile_s = sum(_durations)
+    runs = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        runs.append(time.perf_counter() - t0)
+    run = min(runs)
+    ops, kernels = program_size(fn, *args) if sized else (None, None)
+    return dict(total=total, trace_and_lower=max(total - compile_s - run, 0.0), compile=compile_s, run=run,
+                stablehlo_ops=ops, kernels=kernels)
+
+
+def kepler():
+    e, a = 0.6, 1.0
+    H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
+    q0 = np.array([a * (1 - e), 0.0])
+    p0 = np.array([0.0, np.sqrt((1 + e) / (a * (1 - e)))])
+    return H, q0, p0, 2 * np.pi, gj.CG(6, gj.gauss_legendre(6)), 1e-10
+
+
+def fput():
+    scene = scenes.fput(64)
+    return scene.H, scene.q0, scene.p0, 10.0, gj.CG(4, gj.gauss_legendre(4)), 1e-8
+
+
+def ours(problem):
+    """``{kind: make}``: the library's entry points on ``problem``."""
+    H, q0, p0, T, method, tol = problem
+    q0, p0 = jnp.asarray(q0), jnp.asarray(p0)
+    n = 1000
+    h = T / n
+    pid = lambda: gj.PIDController(rtol=tol, atol=tol)
+    ts = jnp.linspace(0.0, T, 21)
+    event = gj.Event(lambda t, q, p: q[0], capacity=8)
+
+    def run(**kw):
+        return lambda: (lambda q0, p0: gj.integrate(H, q0, p0, method=method, **kw), (q0, p0))
+
+    def grad(**kw):
+        loss = lambda q0, p0: jnp.sum(gj.integrate(H, q0, p0, method=method, **kw).q[-1] ** 2)
+        return lambda: (jax.grad(loss), (q0, p0))
+
+    def sweep():
+        configs = gj.grid(method=method, h=[h, 2 * h], state=[(q0, p0), (0.99 * q0, p0)])
+        return lambda configs: gj.sweep(H, configs, n_steps=n), (configs,)
+
+    return {
+        "step": lambda: (lambda q, p: gj.step(H, q, p, method=method, h=h), (q0, p0)),
+        "amplification_matrix": lambda: (lambda q, p: gj.amplification_matrix(H, q, p, method=method, h=h), (q0, p0)),
+        "suggest_step_size": lambda: (lambda q, p: gj.suggest_step_size(H, q, p, method=method, tolerance=tol, h=h,
+                                                                        span=T)[0], (q0, p0)),
+        "integrate fixed": run(h=h, n_steps=n),
+        "integrate PID": run(h=h, t1=T, controller=pid()),
+        "integrate TimeTransform": run(h=h, t1=T, controller=gj.TimeTransform()),
+        "integrate save_at + events": run(h=h, t1=T, controller=pid(), save_at=ts, events=event),
+        "integrate dense": run(h=h, n_steps=n, dense=True),
+        "sweep": sweep,
+        "grad fixed": grad(h=h, n_steps=n),
+        "grad PID": grad(h=h, t1=T, controller=pid()),
+    }
+
+
+def peers(problem):
+    """``{kind: {peer: make}}``: diffrax's equivalents (the same H, state and span)."""
+    import diffrax
+
+    H, q0, p0, T, _, tol = problem
+    n = 1000
+    dH = jax.grad(H, argnums=(0, 1))
+    term = diffrax.ODETerm(lambda t, y, args: (dH(*y)[1], -dH(*y)[0]))
+    ts = jnp.linspace(0.0, T, 21)
+
+    def solve(solver, pid, **kw):
+        controller = diffrax.PIDController(rtol=tol, atol=tol) if pid else diffrax.ConstantStepSize()
+        return lambda q0, p0: diffrax.diffeqsolve(term, solver, 0.0, T, T / n, (q0, p0), stepsize_controller=controller,
+                                                  max_steps=4096, **kw)
+
+    def made(fn, *args):
+        return lambda: (fn, args or (jnp.asarray(q0), jnp.asarray(p0)))
+
+    def step(solver):
+        def one(q0, p0):
+            state = solver.init(term, 0.0, T / n, (q0, p0), None)
+            return solver.step(term, 0.0, T / n, (q0, p0), None, state, made_jump=False)[0]
+        return one
+
+    def grad(solver, pid):
+        run = solve(solver, pid)
+        return jax.grad(lambda q0, p0: jnp.sum(run(q0, p0).ys[0][-1] ** 2), argnums=(0, 1))
+
+    dopri8, tsit5 = diffrax.Dopri8(), diffrax.Tsit5()
+    event = diffrax.Event(lambda t, y, args, **kw: y[0][0])
+    vsolve = jax.vmap(solve(dopri8, False))
+    return {
+        "step": {"Dopri8": made(step(dopri8))},
+        "amplification_matrix": {"Dopri8": made(lambda q, p: jax.jacrev(
+            lambda z: jnp.concatenate(step(dopri8)(z[: q.size], z[q.size:])))(jnp.concatenate([q, p])))},
+        "integrate fixed": {"Dopri8": made(solve(dopri8, False)), "Tsit5": made(solve(tsit5, False))},
+        "integrate PID": {"Dopri8": made(solve(dopri8, True)), "Tsit5": made(solve(tsit5, True))},
+        "integrate save_at + events": {"Dopri8": made(solve(dopri8, True, saveat=diffrax.SaveAt(ts=ts), event=event))},
+        "integrate dense": {"Dopri8": made(solve(dopri8, False, saveat=diffrax.SaveAt(dense=True)))},
+        "sweep": {"Dopri8": made(vsolve, jnp.stack([jnp.asarray(q0)] * 4), jnp.stack([jnp.asarray(p0)] * 4))},
+        "grad fixed": {"Dopri8": made(grad(dopri8, False))},
+        "grad PID": {"Dopri8": made(grad(dopri8, True)), "Tsit5": made(grad(tsit5, True))},
+    }
+
+
+EAGER = ("suggest_step_size",)  # pilot runs chosen in Python: several programs, no single one to lower
+
+
+def problem_part(name, problem, kinds=None):
+    rows = {}
+    theirs = peers(problem)
+    for kind, make in ours(problem).items():
+        if kinds and kind not in kinds:
+            continue
+        row = {"galerkin_jax": first_call(make, sized=kind not in EAGER)}
+        for peer, peer_make in theirs.get(kind, {}).items():
+            row[f"diffrax {peer}"] = first_call(peer_make)
+        mine = row["galerkin_jax"]["trace_and_lower"] + row["galerkin_jax"]["compile"]
+        if "diffrax Dopri8" in row:
+            dopri8 = row["diffrax Dopri8"]
+            row["ratio_to_dopri8"] = mine / (dopri8["trace_and_lower"] + dopri8["compile"])
+        rows[kind] = row
+        peer_text = "  ".join(f"{k[8:]} {v['trace_and_lower'] + v['compile']:.2f} s" for k, v in row.items()
+                              if k.startswith("diffrax"))
+        ratio = f"  ratio {row['ratio_to_dopri8']:.2f}" if "ratio_to_dopri8" in row else ""
+        size = row["galerkin_jax"]
+        print(f"{name:7s} {kind:28s} trace+lower {mine - size['compile']:5.2f} s  compile {size['compile']:5.2f} s  "
+              f"ops {size['stablehlo_ops']}  kernels {size['kernels']}  | {peer_text}{ratio}", flush=True)
+    return rows
+
+
+def cli_part():
+    """``galerkin-jax run`` in fresh processes: without the cache, then twice with it."""
+    rows = {}
+    with tempfile.TemporaryDirectory() as folder:
+        for label, cache in (("cold", "off"), ("cache, first", "on"), ("cache, again", "on")):
+            env = dict(os.environ, GALERKIN_JAX_CACHE=os.path.join(folder, "cache") if cache == "on" else "")
+            t0 = time.perf_counter()
+            done = subprocess.run([sys.executable, "-m", "galerkin_jax", "run", "--out", os.path.join(folder, "out")],
+                                  capture_output=True, text=True, env=env, check=True)
+            wall = time.perf_counter() - t0
+            printed = re.search(r"compile ([\d.]+) s, run ([\d.]+) s", done.stdout)
+            rows[label] = dict(wall=wall, compile=float(printed.group(1)) if printed else None)
+            print(f"cli     {label:28s} wall {wall:5.2f} s  compile (printed) {rows[label]['compile']}", flush=True)
+    return rows
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--only", nargs="*", default=["kepler", "fput", "cli"])
+    parser.add_argument("--kinds", nargs="*", help="run kinds to measure (default: all), e.g. 'integrate PID'")
+    parser.add_argument("--name", default="compile")
+    options = parser.parse_args()
+    jax.config.update("jax_enable_x64", True)
+    results = {}
+    if "kepler" in options.only:
+        results["kepler"] = problem_part("kepler", kepler(), options.kinds)
+    if "fput" in options.only:
+        results["fput"] = problem_part("fput", fput(), options.kinds)
+    if "cli" in options.only:
+        results["cli"] = cli_part()
+    write(options.name, results)
+
+
+if __name__ == "__main__":
+    main()
