@@ -47,14 +47,12 @@ def _crossing(event, g_a, g_b):
     return {0: up | down, 1: up, -1: down}[event.direction]
 
 
-def _pid_rule(controller, H_bound, order, tiny):
+def _pid_rule(controller, order, tiny):
     """Error-per-step control: accept where the scaled embedded estimate is <= 1; h by the PID
     factor; a rejected step below dtmin (or the round-off of t) ends the run (DTMIN)."""
 
     def rule(c, step):
-        q, p = jnp.split(step["z"], 2)
-        e = embedded_error(H_bound, q, p, step["W"], step["h"])
-        err = jnp.where(step["solved"], scaled_error(e, step["z"], step["z1"], controller), jnp.inf)
+        err = jnp.where(step["solved"], scaled_error(step["embedded"], step["z"], step["z1"], controller), jnp.inf)
         accept = err <= 1
         # h_prev: the last accepted h
         h_ratio = jnp.where(c["steps"] > 0, step["h"] / c["h_prev"], jnp.nan) if controller.predictive else None
@@ -92,10 +90,23 @@ def _transform_rule(s, clock, view, tiny):
     return rule, dict(landing=jnp.zeros((), jnp.int32))
 
 
-def _constant_rule(c, step):
-    """A constant h, the last step shortened to land on t1."""
-    return dict(accept=step["solved"], finished=step["solved"] & step["last"], h_next=c["h"], status=step["status"],
-                t_b=jnp.where(step["last"], step["t1"], step["t"] + step["h"]), rejected=jnp.zeros((), bool), memory={})
+def _constant_rule(t0, h, count):
+    """A constant h: element n spans [t0 + n h, t0 + (n + 1) h] (times by index, not by adding up
+    steps, whose rounding would put t1 a sliver beyond the ``count`` elements), the last one
+    (``count``, ``element_count``) shortened to land on t1."""
+
+    def rule(c, step):
+        return dict(accept=step["solved"], finished=step["solved"] & step["last"], h_next=c["h"],
+                    status=step["status"], t_b=jnp.where(step["last"], step["t1"], t0 + (c["steps"] + 1) * h),
+                    rejected=jnp.zeros((), bool), memory={})
+
+    return rule
+
+
+def element_count(t0, t1, h):
+    """The elements of size h from t0 to t1, the last shortened (an end within 4 eps of t1 counts
+    as t1: no sliver of an element); traced, as ``_span.fixed_step_count`` is for concrete times."""
+    return jnp.maximum(1, jnp.ceil((t1 - t0) / h * (1 - 4 * jnp.finfo(jnp.result_type(h)).eps))).astype(jnp.int32)
 
 
 def _event_update(event, g, c, step, accept, clock):
@@ -111,11 +122,14 @@ def _event_update(event, g, c, step, accept, clock):
     t_ev = _output.time_at(z, W, alpha, t, h, clock)
     slot = jnp.where(hit & (c["ev_count"] < event.capacity), c["ev_count"], event.capacity)
     fields = dict(ev_t=c["ev_t"].at[slot].set(t_ev, mode="drop"), ev_z=c["ev_z"].at[slot].set(at, mode="drop"),
+                  ev_n=c["ev_n"].at[slot].set(c["steps"], mode="drop"),
+                  ev_alpha=c["ev_alpha"].at[slot].set(alpha, mode="drop"),
                   ev_count=c["ev_count"] + hit, g_a=jnp.where(accept, g_b, c["g_a"]))
     return fields, (hit, t_ev, at)
 
 
-def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, event, g, observe, acc0, estimate):
+def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, event, g, observe, acc0, estimate,
+                   every):
     dtype = z0.dtype
     q0, p0 = jnp.split(z0, 2)
     c = dict(z=z0, comp=jnp.zeros_like(z0), t=t0, z_prev=z0, Z_prev=guess, hs=jnp.zeros((max_steps,), dtype),
@@ -137,14 +151,19 @@ def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, 
     if event is not None:
         shape = (event.capacity,)
         c.update(g_a=g(t0, z0), ev_t=jnp.full(shape, jnp.nan, dtype), ev_z=jnp.full(shape + z0.shape, jnp.nan, dtype),
+                 ev_n=jnp.full(shape, -1, jnp.int32), ev_alpha=jnp.full(shape, jnp.nan, dtype),
                  ev_count=jnp.zeros((), jnp.int32))
     if estimate is True:
         c["peak"] = peak_start(q0, p0, guess, h0)
+    if every:
+        slots = max_steps // every + 1
+        c["checkpoints"] = jax.tree.map(lambda x: jnp.zeros((slots,) + jnp.shape(x), jnp.result_type(x)).at[0].set(x),
+                                        dict(z=z0, t=t0, acc=acc0))
     return c
 
 
 def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, ts=None, dense=False,
-        event=None, estimate=False, clock=None, s=None, observe=None, acc0=None):
+        event=None, estimate=False, clock=None, s=None, observe=None, acc0=None, every=None):
     """Integrate from t0 to t1 with the step rule ``controller`` (None: the constant h0).
 
     Args:
@@ -156,10 +175,12 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         estimate: the largest local error of the accepted elements, as in ``march``: "full",
             True (the full estimate where the embedded one peaks) or False (NaN).
         observe, acc0: ``(acc, q, p) -> acc`` folded over the accepted states (``march``).
+        every: keep ``checkpoints`` (z, t and acc at every ``every``-th accepted node, from the
+            first), for the derivatives (``_adjoint``); None: none.
     Returns:
         the final carry, a dict: ``t``, ``z``, ``status``, counts, ``hs`` (the accepted steps),
-        ``h_min``, ``h_max``, ``estimate``, and ``saved``, the dense buffers and the events
-        where asked.
+        ``h_min``, ``h_max``, ``estimate``, and ``saved``, the dense buffers, the events (with
+        each row's element ``ev_n`` and place ``ev_alpha``) and the checkpoints where asked.
     """
     fn = element_residual(H, options.solver.sweep_dimension)
     H_bound = bind_args(H, args)
@@ -170,17 +191,20 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     m = method.polynomial(H_bound, q0, p0, guess, h0).shape[0]
     t0, t1 = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype)
     tiny = 16 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))
-    if isinstance(controller, PIDController):
-        rule, memory = _pid_rule(controller, H_bound, m, tiny)
+    pid = isinstance(controller, PIDController)
+    if pid:
+        rule, memory = _pid_rule(controller, m, tiny)
         h0 = jnp.minimum(h0, controller.dtmax)
         options = dataclasses.replace(options, varying_steps=True, short_lived_matrices=True)
     elif clock is not None:
         rule, memory = _transform_rule(s, clock, view, tiny)
         options = dataclasses.replace(options, short_lived_matrices=True)
     else:
-        rule, memory = _constant_rule, {}
+        count = element_count(t0, t1, h0)
+        rule, memory = _constant_rule(t0, h0, count), {}
     g = None if event is None else (lambda t, z: event.g(t, *view(z)))
-    c = _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, event, g, observe, acc0, estimate)
+    c = _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, event, g, observe, acc0, estimate,
+                       every)
     c.update(memory)
     if s is not None:
         s0 = s(*view(z0))
@@ -191,7 +215,10 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         active = ~c["done"]
         z, t = c["z"], c["t"]
         q, p = jnp.split(z, 2)
-        last = t + c["h"] * (1 + 4 * jnp.finfo(dtype).eps) >= t1
+        if controller is None:  # a constant h: the last element by its index (``_constant_rule``)
+            last = c["steps"] + 1 >= count
+        else:
+            last = t + c["h"] * (1 + 4 * jnp.finfo(dtype).eps) >= t1
         h = jnp.where(last & (clock is None), t1 - t, c["h"])
         # the last accepted element's polynomial continued over this one (the root finder
         # falls back on the constant state where that is worse)
@@ -205,7 +232,9 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         W = method.polynomial(H_bound, q, p, Z, h)
         solved = (status == Status.SUCCESS) & jnp.all(jnp.isfinite(z1))
         status = jnp.where((status == Status.SUCCESS) & ~solved, Status.NONFINITE, status)
-        step = dict(z=z, z1=z1, W=W, h=h, t=t, t1=t1, last=last, solved=solved, status=status)
+        # the embedded estimate, shared by the step rule and the run's estimate (``peak_update``)
+        embedded = embedded_error(H_bound, q, p, W, h) if pid or estimate is True else None
+        step = dict(z=z, z1=z1, W=W, h=h, t=t, t1=t1, last=last, solved=solved, status=status, embedded=embedded)
         verdict = rule(c, step)
         accept, finished = verdict["accept"] & active, verdict["finished"]
         fail = active & (verdict["status"] != Status.SUCCESS)
@@ -235,11 +264,17 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             frozen = jax.lax.stop_gradient((q, p, Z, h, args))
             local = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4]))
         elif estimate:
-            new["peak"] = peak_update(c["peak"], method, H_bound, q, p, Z, h, accept)
+            size = jax.lax.stop_gradient(jnp.max(jnp.abs(embedded)))
+            new["peak"] = peak_update(c["peak"], size, q, p, Z, h, accept)
         for key in end:
             new[key] = jnp.where(accept, end[key], c[key])
         if observe is not None:
             new["acc"] = jax.tree.map(lambda a, b: jnp.where(accept, b, a), c["acc"], observe(c["acc"], *view(end["z"])))
+        if every:  # the accepted node whose index is a multiple of ``every``
+            index = c["steps"] + 1
+            slot = jnp.where(accept & (index % every == 0), index // every, max_steps + 1)
+            node = dict(z=end["z"], t=end["t"], acc=new.get("acc"))
+            new["checkpoints"] = jax.tree.map(lambda a, x: a.at[slot].set(x, mode="drop"), c["checkpoints"], node)
         attempts = c["attempts"] + active
         out_of_steps = active & ~finished & (attempts >= max_steps) & ~fail
         new.update(

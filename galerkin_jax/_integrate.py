@@ -6,10 +6,11 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from . import _adaptive, _checks, _output, _replay, _shape, _span
-from ._controllers import Events
+from . import _adjoint, _checks, _output, _shape, _span
+from ._controllers import Events, TimeTransform
 
-from ._march import bind_args, input_status, march, nan_if_failed, solve_element, solver_options
+from ._march import (bind_args, input_status, march, nan_if_failed, reserved_to_t1, short_of_t1, solve_element,
+                     solver_options)
 from ._output import DenseOutput
 from ._pytree import pytree_dataclass
 from ._solve import SolverOptions, Status, throw_if_failed
@@ -251,7 +252,7 @@ def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps
     if controller is None and ts is None and events is None:
         if save_every != 1:
             raise ValueError("save_every needs n_steps; with t1, pass save_at=times to save at chosen times.")
-        if concrete:
+        if concrete and max_steps is None:
             n, h_last = _span.fixed_step_count(t0, t1, h)
             return _integrate(H, q0, p0, method, h, args, t0, t1, jnp.asarray(h_last, q0.dtype), n, 1, *statics)
         if max_steps is None:
@@ -297,39 +298,38 @@ def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
 @functools.partial(jax.jit, static_argnums=(0, 9, 10, 11, 12, 13, 14, 15))
 def _integrate(H, q0, p0, method, h, args, t0, t1, h_last, n_steps, save_every, options, checkpoint, dense, progress,
                estimate):
-    """Fixed steps: ``n_steps`` of size h, or to ``t1`` (the last of size ``h_last``; None: a
-    traced t1 or h, then ``n_steps`` elements are reserved and the first that reach t1 taken)."""
-    n_active = None
+    """Fixed steps: ``n_steps`` of size h, or to ``t1`` (the last of size ``h_last``; None: ``n_steps``
+    elements are reserved and the first that reach t1 taken, ``reserved_to_t1``)."""
+    n_active, t_end = None, t1
     if t1 is not None and h_last is None:
-        n_active = jnp.clip(jnp.ceil((t1 - t0) / h * (1 - 4 * jnp.finfo(q0.dtype).eps)), 1, n_steps).astype(jnp.int32)
-        h_last = (t1 - t0) - (n_active - 1) * h
+        n_active, h_last, t_end = reserved_to_t1(t0, t1, h, n_steps)
     final, saved, kept = march(
         method, H, q0, p0, h, args, n_blocks=n_steps // save_every, block_size=save_every,
         options=options, checkpoint=checkpoint, dense=dense, progress=progress, estimate=estimate,
         h_last=h_last, n_active=n_active,
     )
-    return solution(final, saved, kept, q0, p0, h, save_every, t0, t1)
+    if n_active is not None:
+        final["status"] = short_of_t1(final["status"], t_end, t1)
+    return solution(final, saved, kept, q0, p0, h, save_every, t0, t_end)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14))
 def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, event, max_steps, options, dense, estimate):
-    """A run whose steps are not known in advance (``_adaptive.run``); its derivatives are those
-    of the run that takes the same steps (``_replay``)."""
-    inputs = (method, q0, p0, args)
-    fn, z_q0, z_p0, run_args, s, clock = _adaptive.problem(H, controller, *jax.lax.stop_gradient((q0, p0)), t0,
-                                                           jax.lax.stop_gradient(args))
+    """A run whose steps are not known in advance (``_adaptive.run``), with the derivatives of the
+    run that takes the same steps (``_adjoint``)."""
+    transform = controller if isinstance(controller, TimeTransform) else None
+    spec = _adjoint.Spec(H, transform, options, max_steps, dense=dense, event=event, estimate=estimate)
+    inputs = dict(q0=q0, p0=p0, args=args, method=method, controller=None if transform else controller, t0=t0,
+                  t1=t1, ts=ts, h=h)
+    c = _adjoint.run(spec, inputs)
+    clock = None if transform is None else q0.shape[0]
     view = lambda z: _output.user_view(z, clock)
-    c = _adaptive.run(jax.lax.stop_gradient(method), fn, z_q0, z_p0, t0, t1, h, run_args, controller, options=options,
-                      max_steps=max_steps, ts=ts, dense=dense, event=event, estimate=estimate, clock=clock, s=s)
     status = c["status"]
-    saved, places = (None, None) if ts is None else (c["saved"][0], c["saved"][1:])
-    z_end, saved = _replay.attach(H, controller, options, inputs, t0, c["hs"], places, c["z"], saved)
-    z_end = nan_if_failed(z_end, status)
     if ts is not None:
-        t, zs = ts, saved
+        t, (q, p) = ts, view(c["saved"])
     else:
-        t, zs = jnp.stack([t0, c["t"]]), jnp.stack([jnp.concatenate([z_q0, z_p0]), z_end])
-    q, p = view(zs)
+        q_end, p_end = view(nan_if_failed(c["z"], status))
+        t, q, p = jnp.stack([t0, c["t"]]), jnp.stack([q0, q_end]), jnp.stack([p0, p_end])
     dense_output = None
     if dense:
         dense_output = DenseOutput(t=c["node_t"], z=c["node_z"], W=c["W"], t_end=c["t"], t1=t1, clock=clock)

@@ -75,6 +75,23 @@ def solver_options(method, max_iterations=None, krylov=None, solver=None):
     return Options(solver_from(solver, max_iterations, krylov), method.fixed_point)
 
 
+def reserved_to_t1(t0, t1, h, reserved):
+    """A fixed-step run to a time t1 in ``reserved`` elements (a traced t1 or h): ``(n_active,
+    h_last, t_end)``, the elements taken, the last one's size (shortened to land on t1) and the
+    time the run ends at: t1, or where t1 lies beyond the reserve, the end of the last element
+    reserved (``Status.MAX_STEPS``, with the state there)."""
+    needed = jnp.ceil((t1 - t0) / h * (1 - 4 * jnp.finfo(jnp.result_type(h)).eps))
+    short = needed > reserved
+    n_active = jnp.clip(needed, 1, reserved).astype(jnp.int32)
+    h_last = jnp.where(short, h, (t1 - t0) - (n_active - 1) * h)
+    return n_active, h_last, jnp.where(short, t0 + reserved * h, t1)
+
+
+def short_of_t1(status, t_end, t1):
+    """``status``, or MAX_STEPS where a run of reserved fixed steps ended before t1."""
+    return jnp.where((status == Status.SUCCESS) & (t_end != t1), Status.MAX_STEPS, status).astype(jnp.int32)
+
+
 def solve_element(method, H, q, p, h, args, options):
     """One element from the constant predictor, without history: ``(q1, p1, Z, iterations, status)``."""
     fn, params = element_residual(H, options.solver.sweep_dimension), (method, q, p, h, args)
@@ -145,15 +162,19 @@ def peak_start(q0, p0, Z0, h):
                 h=stack(jnp.asarray(h, q0.dtype)))
 
 
-def peak_update(peak, method, H_bound, q, p, Z, h, ok):
-    """``peak`` with element (q, p, Z, h) in place of its smallest where its embedded estimate
-    (``embedded_error``, one evaluation of Hamilton's field) is larger and ``ok``."""
-    frozen = jax.lax.stop_gradient((q, p, Z, h))
-    W = method.polynomial(H_bound, *frozen[:3], frozen[3])
-    size = jnp.max(jnp.abs(embedded_error(H_bound, frozen[0], frozen[1], W, frozen[3])))
+def embedded_size(method, H_bound, q, p, Z, h):
+    """The largest entry of an element's embedded estimate (``embedded_error``, one evaluation of
+    Hamilton's field), a number to rank elements by, not a function to differentiate."""
+    q, p, Z, h = jax.lax.stop_gradient((q, p, Z, h))
+    return jnp.max(jnp.abs(embedded_error(H_bound, q, p, method.polynomial(H_bound, q, p, Z, h), h)))
+
+
+def peak_update(peak, size, q, p, Z, h, ok):
+    """``peak`` with element (q, p, Z, h) in place of its smallest where its embedded estimate's
+    ``size`` (``embedded_size``) is larger and ``ok``."""
     slot = jnp.argmin(peak["size"])
     bigger = ok & (size > peak["size"][slot])
-    new = dict(size=size, q=frozen[0], p=frozen[1], Z=frozen[2], h=frozen[3])
+    new = dict(size=size, **dict(zip("qpZh", jax.lax.stop_gradient((q, p, Z, h)))))
     return jax.tree.map(lambda a, b: jnp.where(bigger, a.at[slot].set(b), a), peak, new)
 
 
@@ -247,7 +268,8 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
                    counters=counters.astype(jnp.int32), done=c["done"] + 1,
                    estimate=jnp.maximum(c["estimate"], local), acc=acc)
         if estimate is True:
-            new["peak"] = peak_update(c["peak"], method, H_bound, q, p, Z, h_el, ok & ~idle)
+            size = embedded_size(method, H_bound, q, p, Z, h_el)
+            new["peak"] = peak_update(c["peak"], size, q, p, Z, h_el, ok & ~idle)
         if n_active is not None:
             new = jax.tree.map(lambda a, b: jnp.where(idle, a, b), dict(c, done=c["done"] + 1), new)
         if progress:

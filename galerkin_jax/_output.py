@@ -44,7 +44,9 @@ def locate(f, lo, hi, f_lo, iterations=48):
         lo, hi = jnp.where(same, x, lo), jnp.where(same, hi, x)
         f_lo = jnp.where(same, value, f_lo)
         newton = x - value / jnp.where(slope == 0, jnp.inf, slope)
-        inside = (newton > lo) & (newton < hi) & jnp.isfinite(newton)
+        # closed: at the root (value 0, or a Newton point on the bracket's end) x stays, where
+        # an open bracket would bisect away from it for the rest of the iterations
+        inside = (newton >= lo) & (newton <= hi) & jnp.isfinite(newton)
         return lo, hi, f_lo, jnp.where(inside, newton, 0.5 * (lo + hi))
 
     lo, hi, _, x = jax.lax.fori_loop(0, iterations, body, (lo, hi, f_lo, 0.5 * (lo + hi)))

@@ -16,10 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from . import _adaptive, _checks, _shape, _span
+from . import _adjoint, _checks, _shape, _span
+from ._controllers import TimeTransform
 from ._integrate import DEFAULT_MAX_STEPS, solution
 from ._output import user_view
-from ._march import bind_args, march, nan_if_failed, solver_options
+from ._march import bind_args, march, nan_if_failed, reserved_to_t1, short_of_t1, solver_options
 from ._solve import throw_if_failed
 from ._pytree import pytree_dataclass
 
@@ -70,21 +71,26 @@ def _relative_change(value, initial):
     return jnp.max(jnp.abs(value - initial)) / jnp.where(scale > 0, scale, 1.0)
 
 
-def _diagnostics(H, invariants, q0, p0, args):
-    """``(acc0, observe)`` for one run: the largest relative changes of H and of the
-    invariants, folded into the scan carry by ``observe(acc, q, p)``."""
-    fn = bind_args(H, args)
-    H0, I0s = fn(q0, p0), tuple(I(q0, p0) for I in invariants.values())
+def _diagnostics(H, invariants):
+    """``(acc0, observe)``: ``acc0(q0, p0, args)`` starts the largest relative changes of H and of
+    the invariants, and ``observe(acc, q, p)`` folds a state into them (the scan's carry, or a
+    controlled run's). The start values H_0, I_0 and args travel in acc, so that both are
+    functions of their arguments alone, which a controlled run's derivatives need (``_adjoint``)."""
+
+    def acc0(q0, p0, args):
+        fn, zero = bind_args(H, args), jnp.zeros((), q0.dtype)
+        return dict(args=args, H0=fn(q0, p0), I0=tuple(I(q0, p0) for I in invariants.values()), energy=zero,
+                    others=tuple(zero for _ in invariants))
 
     def observe(acc, q, p):
-        energy, others = acc
+        fn = bind_args(H, acc["args"])
         # fmax ignores NaN: a failed run is flagged by its status and made NaN afterwards
-        energy = jnp.fmax(energy, _relative_change(fn(q, p), H0))
-        others = tuple(jnp.fmax(e, _relative_change(I(q, p), I0)) for e, I, I0 in zip(others, invariants.values(), I0s))
-        return energy, others
+        energy = jnp.fmax(acc["energy"], _relative_change(fn(q, p), acc["H0"]))
+        others = tuple(jnp.fmax(e, _relative_change(I(q, p), I0))
+                       for e, I, I0 in zip(acc["others"], invariants.values(), acc["I0"]))
+        return dict(acc, energy=energy, others=others)
 
-    zero = jnp.zeros((), q0.dtype)
-    return (zero, tuple(zero for _ in invariants)), observe
+    return acc0, observe
 
 
 def _block_size(n_steps, save_every, checkpoint):
@@ -103,7 +109,7 @@ def _final_error(final, reference):
 
 
 def _result(final, runs, invariants, reference):
-    energy, others = final["acc"]
+    energy, others = final["acc"]["energy"], final["acc"]["others"]
     return SweepResult(
         energy_error=nan_if_failed(energy, final["status"]),
         invariant_errors={name: nan_if_failed(e, final["status"]) for name, e in zip(invariants, others)},
@@ -121,17 +127,20 @@ def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, esti
     invariants = dict(invariants)
     block = _block_size(n_steps, save_every, checkpoint)
 
+    acc0, observe = _diagnostics(H, invariants)
+
     def one(method, q0, p0, h, args):
-        acc0, observe = _diagnostics(H, invariants, q0, p0, args)
-        to_t1 = {}
+        to_t1, t_end = {}, None
         if t1 is not None:
-            n_active = jnp.clip(jnp.ceil((t1 - t0) / h * (1 - 4 * jnp.finfo(q0.dtype).eps)), 1, n_steps)
-            to_t1 = dict(n_active=n_active.astype(jnp.int32), h_last=(t1 - t0) - (n_active - 1) * h)
+            n_active, h_last, t_end = reserved_to_t1(t0, t1, h, n_steps)
+            to_t1 = dict(n_active=n_active, h_last=h_last)
         final, saved, _ = march(method, H, q0, p0, h, args, n_blocks=n_steps // block, block_size=block,
-                                options=options, checkpoint=checkpoint, observe=observe, acc0=acc0,
+                                options=options, checkpoint=checkpoint, observe=observe, acc0=acc0(q0, p0, args),
                                 progress=progress, estimate=estimate, **to_t1)
         final["rejected"] = jnp.zeros_like(final["steps"])
-        return final, (solution(final, saved, None, q0, p0, h, block, t0) if save_every else None)
+        if t1 is not None:
+            final["status"] = short_of_t1(final["status"], t_end, t1)
+        return final, (solution(final, saved, None, q0, p0, h, block, t0, t_end) if save_every else None)
 
     c = configs
     final, runs = jax.vmap(one)(c.method, c.q0, c.p0, c.h, c.args)
@@ -140,20 +149,20 @@ def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, esti
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
 def _run_adaptive(H, invariants, max_steps, options, estimate, configs, reference, t0, t1, controller):
-    """A controller's runs to ``t1``, each member its own steps (``_adaptive.run``)."""
-    invariants = dict(invariants)
+    """A controller's runs to ``t1``, each member its own steps, with derivatives (``_adjoint``)."""
+    acc0, observe = _diagnostics(H, dict(invariants))
+    transform = controller if isinstance(controller, TimeTransform) else None
+    spec = _adjoint.Spec(H, transform, options, max_steps, estimate=estimate, observe=observe, acc0=acc0)
 
     def one(method, q0, p0, h, args, controller):
-        acc0, observe = _diagnostics(H, invariants, q0, p0, args)
-        fn, z_q0, z_p0, run_args, s, clock = _adaptive.problem(H, controller, q0, p0, t0, args)
-        c = _adaptive.run(method, fn, z_q0, z_p0, t0, t1, h, run_args, controller, options=options,
-                          max_steps=max_steps, estimate=estimate, clock=clock, s=s, observe=observe, acc0=acc0)
-        q, p = user_view(nan_if_failed(c["z"], c["status"]), clock)
+        c = _adjoint.run(spec, dict(q0=q0, p0=p0, args=args, method=method, controller=controller, t0=t0, t1=t1,
+                                    ts=None, h=h))
+        q, p = user_view(nan_if_failed(c["z"], c["status"]), None if transform is None else q0.shape[0])
         return dict(q=q, p=p, estimate=nan_if_failed(c["estimate"], c["status"]), acc=c["acc"],
                     **{k: c[k] for k in ("status", "total", "most", "trips", "steps", "rejected", "lenient")})
 
     c = configs
-    final = jax.vmap(one)(c.method, c.q0, c.p0, c.h, c.args, controller)
+    final = jax.vmap(one)(c.method, c.q0, c.p0, c.h, c.args, None if transform else controller)
     return _result(final, None, invariants, reference)
 
 

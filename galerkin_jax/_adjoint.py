@@ -1,0 +1,579 @@
+"""Derivatives of a run whose steps are chosen while it runs (``_adaptive``), paid for by the steps taken.
+
+Such a run is a ``lax.while_loop``, which reverse mode cannot differentiate, and how many
+elements it takes is known only when it ends. Its derivatives are those of the run that takes
+the same steps (the step sizes are constants of the trajectory, as in diffrax): element n maps
+its start z_n and the parameters theta = (method, args) to its end z_{n+1} and its polynomial
+W_n, through the root of its equations, whose derivative is the implicit function theorem's
+(``_solve.implicit``); what a run reads between nodes (``save_at``, events, dense output) is a
+function of an element's z_n, W_n, z_{n+1}, its time t_n and its length h_n. ``run`` attaches
+to the forward run the tangent map of all that, made of two sweeps over the elements the run
+took, whatever ``max_steps``:
+
+* forward (``jax.jvp``, ``_tangent_sweep``): element after element, each element's tangent by
+  ``jax.jvp`` at its root, found again from z_n;
+* reverse (``jax.grad``, ``jax.vjp``, ``_adjoint_sweep``): backwards, each element by
+  ``jax.vjp``. The forward run keeps z, t (and a sweep's diagnostics) at every ``every``-th
+  node (checkpoints, ``every`` ~ sqrt(max_steps)); the adjoint solves each stretch of
+  ``every`` elements again from its checkpoint, then takes it backwards.
+
+``linear_map`` makes the forward sweep an operation that JAX transposes into the reverse one.
+The times: a constant h's element n starts at t0 + n h; a controller's at t0 plus the steps
+before it; the element that lands on t1 is t1 - t_n long, so t0, t1 and a constant h have
+derivatives, a controller's steps none. A time-transformed run's time is a coordinate of its
+state, and its last element's length in tau is fixed by landing on t1 (``_landing``). A save
+time's place alpha in its element, and an event's, move with the inputs as the implicit
+function theorem says (``_root``). A derivative that is not defined raises (``_check_tangents``);
+second derivatives of such a run raise too (``_first_order``).
+"""
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+
+from . import _adaptive, _output
+from ._march import bind_args, continued, element_residual, state_scale
+from ._solve import Options, Status, implicit, initial_matrix, solve
+
+# the outputs of a run that have derivatives; the rest (counts, status, estimates, places) have none
+DIFFERENTIABLE = ("z", "t", "saved", "ev_t", "ev_z", "node_t", "node_z", "W", "acc")
+INPUTS = ("q0", "p0", "args", "method", "t0", "t1", "ts", "h")
+
+
+@dataclasses.dataclass(frozen=True)
+class Spec:
+    """What a run is, apart from its inputs (static).
+
+    Attributes:
+        H: the user's Hamiltonian, unbound.
+        transform: the ``TimeTransform`` (its s is static) or None.
+        options: the root finder's ``Options``.
+        max_steps, dense, event, estimate: as ``_adaptive.run`` takes them.
+        observe, acc0: a sweep's diagnostics, ``observe(acc, q, p)`` folded over the accepted
+            nodes from ``acc0(q0, p0, args)``; or None.
+    """
+
+    H: object
+    transform: object
+    options: Options
+    max_steps: int
+    dense: bool = False
+    event: object = None
+    estimate: object = False
+    observe: object = None
+    acc0: object = None
+
+    @property
+    def every(self):
+        """The nodes between checkpoints: sqrt(max_steps), so that the checkpoints and the
+        elements of one stretch each take about sqrt(max_steps) states of memory."""
+        return max(1, math.isqrt(self.max_steps))
+
+
+def run(spec, inputs):
+    """The forward run of ``spec`` from ``inputs``, with derivatives (module docstring).
+
+    Args:
+        inputs: dict of ``q0``, ``p0`` (flat), ``args``, ``method``, ``controller`` (a
+            ``PIDController`` or None), ``t0``, ``t1``, ``ts`` (or None) and ``h``.
+    Returns:
+        dict: ``z``, ``t`` (where and when the run ended), ``saved`` (the states at ``ts``),
+        ``places`` (their elements and alphas), the events, the dense buffers, ``acc``, and the
+        counts of ``_adaptive.run``.
+    """
+
+    @jax.custom_jvp
+    def outputs(inputs):
+        return _forward(spec, inputs, every=None)
+
+    def outputs_jvp(primals, tangents):
+        (inputs,), (d_inputs,) = primals, tangents
+        leaves, full, pick = _tangents(spec, inputs, d_inputs)
+        inputs = _first_order(inputs)
+        c = _forward(spec, inputs, every=spec.every)
+        out = {k: v for k, v in c.items() if k != "checkpoints"}
+        differentiable = {k: out[k] for k in DIFFERENTIABLE if out.get(k) is not None}
+        d_out = linear_map(lambda leaves: _tangent_sweep(spec, inputs, c, full(leaves)),
+                           lambda ct: pick(_adjoint_sweep(spec, inputs, c, ct)), leaves, differentiable)
+        zero = {k: jax.tree.map(_zero_tangent, v) for k, v in out.items() if k not in d_out}
+        return out, {**zero, **d_out}
+
+    outputs.defjvp(outputs_jvp, symbolic_zeros=True)
+    return outputs(inputs)
+
+
+def linear_map(forward, transpose, x, y):
+    """``forward(x)``, a linear map of the tangents ``x`` (a non-empty list of arrays, each a
+    tangent, not a constant) to something of y's structure, as one operation whose transpose is
+    ``transpose(ybar) -> xbar``: the map (x, y) -> (0, forward(x)) is handed to
+    ``lax.custom_linear_solve`` as its ``solve``, and (xbar, ybar) -> (transpose(ybar), 0) as the
+    solve of the transpose, so that reverse mode runs ``transpose`` and forward mode ``forward``.
+    (Every operand of the solve must be a tangent: y's zeros are zeros times one of x.)"""
+    zeros = lambda tree: jax.tree.map(jnp.zeros_like, tree)
+    anchor = jnp.ravel(x[0])[0] if jnp.size(x[0]) else jnp.zeros((), jnp.result_type(x[0]))
+    solve = lambda _, b: (zeros(b[0]), forward(b[0]))
+    transpose_solve = lambda _, b: (transpose(b[1]), zeros(b[1]))
+    y = jax.tree.map(lambda v: jnp.zeros_like(v) * anchor.astype(jnp.result_type(v)), y)
+    return jax.lax.custom_linear_solve(lambda b: b, (x, y), solve, transpose_solve)[1]
+
+
+def _zero_tangent(x):
+    x = jnp.asarray(x)
+    return jnp.zeros_like(x) if _inexact(x) else jnp.zeros(x.shape, jax.dtypes.float0)
+
+
+def _inexact(x):
+    dtype = getattr(x, "dtype", None)
+    return dtype != jax.dtypes.float0 and jnp.issubdtype(jnp.result_type(x), jnp.inexact)
+
+
+def _add(a, b):
+    """``a + b`` of two cotangent pytrees, where the leaves are numbers (float0 has none)."""
+    return jax.tree.map(lambda x, y: x + y if _inexact(x) and _inexact(y) else x, a, b)
+
+
+def _symbolic_zero(t):
+    return isinstance(t, jax.custom_derivatives.SymbolicZero)
+
+
+def _nonzero(tangent):
+    return any(not _symbolic_zero(t) for t in jax.tree.leaves(tangent, is_leaf=_symbolic_zero))
+
+
+def _tangents(spec, inputs, d_inputs):
+    """``(leaves, full, pick)``: the tangents of the differentiable inputs (``INPUTS``) that are
+    not symbolic zeros (floating leaves only), ``full(leaves)``, all the tangents as a dict of
+    the inputs' structure with zeros elsewhere, and ``pick(dict) -> leaves``, its inverse. A
+    derivative the run does not have raises, naming the input."""
+    if (inputs["controller"] is not None or spec.transform is not None) and _nonzero(d_inputs["h"]):
+        raise ValueError("h has no derivative here: a controller's first step, or a time transformation's step "
+                         "in tau, is a constant of the trajectory (fixed steps have a derivative in h).")
+    if _nonzero(d_inputs["controller"]):
+        raise ValueError("The controller's tolerances and bounds have no derivative: the steps are constants of "
+                         "the trajectory.")
+    primals, structure = jax.tree.flatten({k: inputs[k] for k in INPUTS})
+    tangents = jax.tree.leaves({k: d_inputs[k] for k in INPUTS}, is_leaf=_symbolic_zero)
+    where = [i for i, (x, t) in enumerate(zip(primals, tangents)) if _inexact(x) and not _symbolic_zero(t)]
+
+    def full(leaves):
+        merged = [_zero_tangent(x) for x in primals]
+        for i, t in zip(where, leaves):
+            merged[i] = t
+        return jax.tree.unflatten(structure, merged)
+
+    def pick(bars):
+        leaves = jax.tree.leaves(bars)
+        return [leaves[i] for i in where]
+
+    return [tangents[i] for i in where], full, pick
+
+
+@jax.custom_jvp
+def _no_second_derivative(x):
+    return x
+
+
+@_no_second_derivative.defjvp
+def _no_second_derivative_jvp(primals, tangents):
+    raise NotImplementedError(
+        "Second derivatives of a run whose steps are chosen as it runs (a controller, save_at or events) are not "
+        "supported: its derivative is a sweep over the steps taken. Differentiate a run of fixed steps (n_steps) "
+        "twice instead.")
+
+
+def _first_order(inputs):
+    """The inputs, through an identity that raises where they are differentiated again."""
+    return jax.tree.map(lambda x: _no_second_derivative(x) if _inexact(x) else x, inputs)
+
+
+# ---------------------------------------------------------------------------------------------
+# the forward run
+
+
+def _start(spec, q0, p0, args, t0):
+    """``(z~0, args~)``, the initial state and arguments of the problem the loop solves
+    (``_adaptive.problem``), differentiable in the user's q0, p0, args and t0."""
+    _, z_q0, z_p0, run_args, _, _ = _adaptive.problem(spec.H, spec.transform, q0, p0, t0, args)
+    return jnp.concatenate([z_q0, z_p0]), run_args
+
+
+def _problem(spec, inputs):
+    """``(H~, s~, clock)`` of the problem the loop solves."""
+    fn, _, _, _, s, clock = _adaptive.problem(spec.H, spec.transform, inputs["q0"], inputs["p0"], inputs["t0"],
+                                              inputs["args"])
+    return fn, s, clock
+
+
+def _forward(spec, inputs, every):
+    fn, s, clock = _problem(spec, inputs)
+    z0, run_args = _start(spec, inputs["q0"], inputs["p0"], inputs["args"], inputs["t0"])
+    acc0 = None if spec.observe is None else spec.acc0(inputs["q0"], inputs["p0"], inputs["args"])
+    controller = inputs["controller"] if spec.transform is None else spec.transform
+    c = _adaptive.run(inputs["method"], fn, *jnp.split(z0, 2), inputs["t0"], inputs["t1"], inputs["h"], run_args,
+                      controller, options=spec.options, max_steps=spec.max_steps, ts=inputs["ts"], dense=spec.dense,
+                      event=spec.event, estimate=spec.estimate, clock=clock, s=s, observe=spec.observe, acc0=acc0,
+                      every=every)
+    keep = ("z", "t", "status", "steps", "rejected", "attempts", "total", "most", "trips", "lenient", "h_min", "h_max",
+            "estimate", "hs", "ev_t", "ev_z", "ev_n", "ev_alpha", "ev_count", "node_t", "node_z", "W", "acc",
+            "checkpoints")
+    out = {k: c[k] for k in keep if k in c}
+    if inputs["ts"] is not None:
+        out["saved"], out["places"] = c["saved"][0], c["saved"][1:]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# one element and what is read from it
+
+
+def _element(spec, fn, theta, z, h, Z):
+    """``(z_{n+1}, W_n)``: the element of length h from z with root ``Z`` (found beforehand),
+    differentiable in theta = (method, args~), z and h (``_solve.implicit``)."""
+    method, args = theta
+    q, p = jnp.split(z, 2)
+    residual = element_residual(fn, spec.options.solver.sweep_dimension)
+    Z = implicit(residual, spec.options.solver.dense_limit, (method, q, p, h, args), Z, jnp.ones((), bool))
+    H_bound = bind_args(fn, args)
+    return z + jnp.concatenate(method.increment(H_bound, q, p, Z, h)), method.polynomial(H_bound, q, p, Z, h)
+
+
+def _resolve(fn, theta, z, h, previous, matrix, options):
+    """The root of the element of length h from z, found again from the previous element's
+    polynomial continued (``previous = (z, Z, h, have)``; the constant state where not
+    ``have``), ``matrix`` carried on. Returns ``(Z, matrix, converged)``."""
+    method, args = theta
+    q, p = jnp.split(z, 2)
+    constant = method.initial_guess(q, p)
+    z_prev, Z_prev, h_prev, have = previous
+    guess = jnp.where(have, continued(method, q, p, (*jnp.split(z_prev, 2), Z_prev), h / h_prev), constant)
+    residual = element_residual(fn, options.solver.sweep_dimension)
+    Z, matrix, _, status, _, _ = solve(residual, (method, q, p, h, args), guess, constant, matrix, state_scale(z),
+                                       jnp.zeros((), bool), ~have, options)
+    return jax.lax.stop_gradient(Z), matrix, status == Status.SUCCESS
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _root(f, alpha, f_args):
+    """``alpha``, a root of ``f(alpha, *f_args)`` that the forward run located, with its tangent by
+    the implicit function theorem: d alpha = -(df/dargs . dargs) / (df/dalpha)."""
+    return alpha
+
+
+@_root.defjvp
+def _root_jvp(f, primals, tangents):
+    alpha, f_args = primals
+    _, df = jax.jvp(lambda a: f(alpha, *a), (f_args,), (tangents[1],))
+    return alpha, -df / jax.grad(f)(alpha, *f_args)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _landing(end_time, h, z, theta, t1, Z):
+    """A time-transformed run's last element's length in tau, h, which lands it on t1,
+    ``end_time(z, theta, h, Z) = t1``; its tangent by the implicit function theorem."""
+    return h
+
+
+@_landing.defjvp
+def _landing_jvp(end_time, primals, tangents):
+    h, z, theta, t1, Z = primals
+    _, dz, dtheta, dt1, _ = tangents
+    _, moved = jax.jvp(lambda z, theta: end_time(z, theta, h, Z), (z, theta), (dz, dtheta))
+    _, rate = jax.jvp(lambda h: end_time(z, theta, h, Z), (h,), (jnp.ones_like(h),))
+    return h, (dt1 - moved) / rate
+
+
+def _time_at(clock, z, W, t_n, h, alpha):
+    """The time at alpha in an element: t_n + alpha h, or the clock coordinate of w."""
+    return _output.time_at(z, W, alpha, t_n, h, clock)
+
+
+def _save(clock, z, W, z1, t_n, h, ts, alpha, node):
+    """The state at the save time ``ts`` in an element: w at its alpha, or at a node (``node``
+    -1 the start, +1 the end) the node's state, w's jump there held."""
+    if clock is None:
+        alpha = (ts - t_n) / h
+    else:
+        alpha = _root(lambda a, z, W, ts: _output.on_polynomial(z, W, a[None])[0, clock] - ts, alpha, (z, W, ts))
+    w = lambda a: _output.on_polynomial(z, W, a[None])[0]
+    jump = jnp.where(node < 0, z - w(jnp.zeros_like(alpha)), jnp.where(node > 0, z1 - w(jnp.ones_like(alpha)), 0.0))
+    return w(alpha) + jump
+
+
+def _event(g, clock, view, z, W, t_n, h, alpha):
+    """``(t*, z*)``: an event's time and state in an element, its alpha the root of
+    g(t(alpha), w(alpha)) that the forward run located."""
+
+    def g_at(a, z, W, t_n, h):
+        return g(_time_at(clock, z, W, t_n, h, a), *view(_output.on_polynomial(z, W, a[None])[0]))
+
+    alpha = _root(g_at, alpha, (z, W, t_n, h))
+    return _time_at(clock, z, W, t_n, h, alpha), _output.on_polynomial(z, W, alpha[None])[0]
+
+
+# ---------------------------------------------------------------------------------------------
+# the elements' times, lengths and places
+
+
+def _timing(inputs, c, n, t_n, landed, t0, t1, h):
+    """``(t_n, h_n)`` of element n, differentiable in (t0, t1, h) (module docstring); their values
+    are the forward run's (``t_n``: the time it reached, for a controller's run)."""
+    if inputs["controller"] is None:
+        start = t0 + n * h
+        return start, jnp.where(landed, t1 - start, h)
+    start = t0 + jax.lax.stop_gradient(t_n - t0)
+    return start, jnp.where(landed, t1 - start, jax.lax.stop_gradient(c["hs"][n]))
+
+
+def _terminated(spec, c):
+    """The run ended at a terminal event (its row 0)."""
+    if spec.event is None or not spec.event.terminal:
+        return jnp.zeros((), bool)
+    return c["ev_count"] > 0
+
+
+def _landed(spec, c, n):
+    """Element n is the one that lands on t1: the last of a run that reached t1."""
+    return (c["status"] == Status.SUCCESS) & ~_terminated(spec, c) & (n == c["steps"] - 1)
+
+
+def _places(c):
+    """Each save time's element, alpha and node (-1 its start, +1 its end, 0 inside); a save at t0
+    is element 0's start."""
+    elements, alphas = c["places"]
+    start = elements < 0
+    return jnp.where(start, 0, elements), jnp.where(start, 0.0, alphas), jnp.where(start, -1, jnp.where(
+        alphas == 1.0, 1, 0))
+
+
+def _range(n, elements):
+    """``[lo, hi)``, where the sorted ``elements`` equal n."""
+    return jnp.searchsorted(elements, n, side="left"), jnp.searchsorted(elements, n, side="right")
+
+
+def _event_elements(spec, c):
+    return jnp.where(c["ev_n"] < 0, spec.max_steps + 1, c["ev_n"])
+
+
+def _resolve_options(spec, inputs):
+    """The root finder's options for elements found again: the forward run's, less a
+    controller's cap on matrices (an element found again from another predictor must not fail
+    where it converged)."""
+    controlled = inputs["controller"] is not None or spec.transform is not None
+    return dataclasses.replace(spec.options, varying_steps=False, short_lived_matrices=controlled)
+
+
+class _Element:
+    """Element n of a run as the sweeps differentiate it: ``args()`` its differentiable
+    arguments, ``outputs(*args)`` its end z_{n+1} and polynomial W (``_element``) and its
+    start time and length (``_timing``), and what it holds of the outputs (saves, events)."""
+
+    def __init__(self, spec, fn, inputs, c, clock, n, t_n, Z):
+        self.spec, self.fn, self.inputs, self.c, self.clock, self.n, self.t_n, self.Z = (
+            spec, fn, inputs, c, clock, n, t_n, Z)
+        self.landed = _landed(spec, c, n)
+        self.h_n = c["hs"][n]
+
+    def outputs(self, theta, z, t0, t1, h):
+        spec, fn, clock, Z = self.spec, self.fn, self.clock, self.Z
+        if clock is None:
+            start, length = _timing(self.inputs, self.c, self.n, self.t_n, self.landed, t0, t1, h)
+        else:
+            end_time = lambda z, theta, h, Z: _element(spec, fn, theta, z, h, Z)[0][clock]
+            length = jnp.where(self.landed, _landing(end_time, self.h_n, z, theta, t1, Z), self.h_n)
+            start = z[clock]
+        z1, W = _element(spec, fn, theta, z, length, Z)
+        return z1, W, start, length
+
+
+def _tangent_sweep(spec, inputs, c, d):
+    """The tangents of the differentiable outputs for the inputs' tangents ``d`` (forward mode)."""
+    fn, _, clock = _problem(spec, inputs)
+    view = lambda z: _output.user_view(z, clock)
+    primal = tuple(inputs[k] for k in ("q0", "p0", "args", "t0"))
+    (z0, run_args), (dz0, d_run_args) = jax.jvp(lambda *a: _start(spec, *a), primal,
+                                                tuple(d[k] for k in ("q0", "p0", "args", "t0")))
+    theta, d_theta = (inputs["method"], run_args), (d["method"], d_run_args)
+    times, d_times = tuple(inputs[k] for k in ("t0", "t1", "h")), tuple(d[k] for k in ("t0", "t1", "h"))
+    options = _resolve_options(spec, inputs)
+    dtype = z0.dtype
+    out = {k: jnp.zeros_like(c[k]) for k in DIFFERENTIABLE if k in c and k != "acc"}
+    acc = d_acc = None
+    if spec.observe is not None:
+        acc, d_acc = jax.jvp(spec.acc0, primal[:3], tuple(d[k] for k in ("q0", "p0", "args")))
+    if spec.dense:
+        out["node_z"] = out["node_z"].at[0].set(dz0)
+        out["node_t"] = out["node_t"].at[0].set(d["t0"] if clock is None else dz0[clock])
+    if "saved" in out:
+        elements, alphas, nodes = _places(c)
+
+    def body(s):
+        n, z, dz, t_n, matrix, previous, ok, acc, d_acc, out = s
+        element = _Element(spec, fn, inputs, c, clock, n, t_n, None)
+        Z, matrix, solved = _resolve(fn, theta, z, element.h_n, previous, matrix, options)
+        element.Z = Z
+        (z1, W, start, h), (dz1, dW, d_start, dh) = jax.jvp(element.outputs, (theta, z, *times),
+                                                            (d_theta, dz, *d_times))
+        if "saved" in out:
+            def save(i, saved):
+                _, d_value = jax.jvp(lambda z, W, z1, start, h, ts: _save(clock, z, W, z1, start, h, ts, alphas[i],
+                                                                          nodes[i]),
+                                     (z, W, z1, start, h, inputs["ts"][i]), (dz, dW, dz1, d_start, dh, d["ts"][i]))
+                return saved.at[i].set(d_value)
+
+            out = dict(out, saved=jax.lax.fori_loop(*_range(n, elements), save, out["saved"]))
+        if spec.event is not None:
+            def event(i, out):
+                _, (dt, dz_event) = jax.jvp(lambda z, W, start, h: _event(spec.event.g, clock, view, z, W, start, h,
+                                                                          c["ev_alpha"][i]),
+                                            (z, W, start, h), (dz, dW, d_start, dh))
+                return dict(out, ev_t=out["ev_t"].at[i].set(dt), ev_z=out["ev_z"].at[i].set(dz_event))
+
+            out = jax.lax.fori_loop(*_range(n, _event_elements(spec, c)), event, out)
+        if spec.dense:
+            d_end = d_start + dh if clock is None else dz1[clock]
+            out = dict(out, node_z=out["node_z"].at[n + 1].set(dz1), W=out["W"].at[n].set(dW),
+                       node_t=out["node_t"].at[n + 1].set(d_end))
+        if spec.observe is not None:
+            acc, d_acc = jax.jvp(lambda a, z1: spec.observe(a, *view(z1)), (acc, z1), (d_acc, dz1))
+        t_next = t_n + element.h_n if clock is None else z1[clock]
+        return n + 1, z1, dz1, t_next, matrix, (z, Z, element.h_n, jnp.ones((), bool)), ok & solved, acc, d_acc, out
+
+    guess = inputs["method"].initial_guess(*jnp.split(z0, 2))
+    previous = (z0, guess, jnp.ones((), dtype), jnp.zeros((), bool))
+    s = (jnp.zeros((), jnp.int32), z0, dz0, jnp.asarray(inputs["t0"], dtype), initial_matrix(guess, options), previous,
+         c["status"] == Status.SUCCESS, acc, d_acc, out)
+    *_, dz, _, _, _, ok, _, d_acc, out = jax.lax.while_loop(lambda s: s[0] < c["steps"], body, s)
+    terminated = _terminated(spec, c)
+    out["z"] = dz
+    out["t"] = jnp.asarray(d["t1"], dtype)
+    if spec.event is not None and spec.event.terminal:
+        out["z"] = jnp.where(terminated, out["ev_z"][0], dz)
+        out["t"] = jnp.where(terminated, out["ev_t"][0], out["t"])
+        if spec.dense:
+            out["node_z"] = out["node_z"].at[c["steps"]].set(out["z"])
+            out["node_t"] = out["node_t"].at[c["steps"]].set(out["t"])
+    if spec.observe is not None:
+        out["acc"] = d_acc
+    # a run that failed, or an element not found again, has no tangent: NaN, never a plausible one
+    return jax.tree.map(lambda x: jnp.where(ok, x, jnp.nan) if _inexact(x) else x, out)
+
+
+def _adjoint_sweep(spec, inputs, c, ct):
+    """The cotangents of the inputs for the outputs' cotangents ``ct`` (reverse mode)."""
+    fn, _, clock = _problem(spec, inputs)
+    view = lambda z: _output.user_view(z, clock)
+    primal = tuple(inputs[k] for k in ("q0", "p0", "args", "t0"))
+    (z0, run_args), start_vjp = jax.vjp(lambda *a: _start(spec, *a), *primal)
+    theta = (inputs["method"], run_args)
+    times = tuple(inputs[k] for k in ("t0", "t1", "h"))
+    options = _resolve_options(spec, inputs)
+    dtype, every, steps = z0.dtype, spec.every, c["steps"]
+    zeros = lambda tree: jax.tree.map(jnp.zeros_like, tree)
+    if "saved" in ct:
+        elements, alphas, nodes = _places(c)
+    # the end's cotangents go to the last node, or to a terminal event's row 0
+    terminated = _terminated(spec, c)
+    lam = jnp.where(terminated, 0.0, ct["z"])
+    times_bar = (jnp.zeros((), dtype), jnp.where(terminated, 0.0, ct["t"]).astype(dtype), jnp.zeros((), dtype))
+    if spec.event is not None:
+        ev_t_bar, ev_z_bar = ct["ev_t"], ct["ev_z"]
+        if spec.event.terminal:
+            node_z_bar = ct["node_z"][steps] if spec.dense else 0.0
+            node_t_bar = ct["node_t"][steps] if spec.dense else 0.0
+            ev_z_bar = ev_z_bar.at[0].add(jnp.where(terminated, ct["z"] + node_z_bar, 0.0))
+            ev_t_bar = ev_t_bar.at[0].add(jnp.where(terminated, ct["t"] + node_t_bar, 0.0))
+    if spec.dense:
+        lam = lam + jnp.where(terminated, 0.0, ct["node_z"][steps])
+    acc_bar = ct.get("acc")
+    ts_bar = None if inputs["ts"] is None else jnp.zeros_like(inputs["ts"])
+    guess = inputs["method"].initial_guess(*jnp.split(z0, 2))
+    checkpoints = c["checkpoints"]
+
+    def segment(s):
+        k, lam, acc_bar, theta_bar, times_bar, ts_bar, ok = s
+        first = k * every
+        length = jnp.minimum(steps, first + every) - first
+        start = jax.tree.map(lambda a: a[k], checkpoints)
+
+        def again(i, r):  # the stretch's elements found again, forwards
+            z, t, acc, matrix, previous, ok, kept = r
+            h_n = c["hs"][first + i]
+            Z, matrix, solved = _resolve(fn, theta, z, h_n, previous, matrix, options)
+            z1 = _element(spec, fn, theta, z, h_n, Z)[0]
+            kept = jax.tree.map(lambda b, x: b.at[i].set(x), kept, dict(z=z, Z=Z, t=t, acc=acc))
+            acc1 = None if spec.observe is None else spec.observe(acc, *view(z1))
+            t1 = t + h_n if clock is None else z1[clock]
+            return z1, t1, acc1, matrix, (z, Z, h_n, jnp.ones((), bool)), ok & solved, kept
+
+        stretch = lambda x: jnp.zeros((every,) + jnp.shape(x), jnp.result_type(x))
+        kept = jax.tree.map(stretch, dict(z=z0, Z=guess, t=jnp.zeros((), dtype), acc=start["acc"]))
+        previous = (z0, guess, jnp.ones((), dtype), jnp.zeros((), bool))
+        r = (start["z"], start["t"], start["acc"], initial_matrix(guess, options), previous, ok, kept)
+        *_, ok, kept = jax.lax.fori_loop(0, length, again, r)
+
+        def back(j, s):  # backwards through the stretch
+            lam, acc_bar, theta_bar, times_bar, ts_bar = s
+            i = length - 1 - j
+            n = first + i
+            z, acc = kept["z"][i], None if spec.observe is None else jax.tree.map(lambda a: a[i], kept["acc"])
+            element = _Element(spec, fn, inputs, c, clock, n, kept["t"][i], kept["Z"][i])
+            (z1, W, start, h), element_vjp = jax.vjp(element.outputs, theta, z, *times)
+            local = dict(z=jnp.zeros_like(z), W=jnp.zeros_like(W), z1=lam, start=jnp.zeros((), dtype),
+                         h=jnp.zeros((), dtype), ts=ts_bar)
+            if spec.observe is not None:
+                acc_bar, z1_bar = jax.vjp(lambda a, z1: spec.observe(a, *view(z1)), acc, z1)[1](acc_bar)
+                local["z1"] = local["z1"] + z1_bar
+            if spec.dense:
+                local["W"] = ct["W"][n]
+                if clock is None:  # node n + 1's time is t_n + h_n
+                    local["start"], local["h"] = ct["node_t"][n + 1], ct["node_t"][n + 1]
+                else:
+                    local["z1"] = local["z1"].at[clock].add(ct["node_t"][n + 1])
+            if "saved" in ct:
+                def save(i, local):
+                    _, save_vjp = jax.vjp(lambda z, W, z1, start, h, ts: _save(clock, z, W, z1, start, h, ts,
+                                                                               alphas[i], nodes[i]),
+                                          z, W, z1, start, h, inputs["ts"][i])
+                    zb, Wb, z1b, sb, hb, tsb = save_vjp(ct["saved"][i])
+                    return dict(z=local["z"] + zb, W=local["W"] + Wb, z1=local["z1"] + z1b, start=local["start"] + sb,
+                                h=local["h"] + hb, ts=local["ts"].at[i].add(tsb))
+
+                local = jax.lax.fori_loop(*_range(n, elements), save, local)
+            if spec.event is not None:
+                def event(i, local):
+                    _, event_vjp = jax.vjp(lambda z, W, start, h: _event(spec.event.g, clock, view, z, W, start, h,
+                                                                         c["ev_alpha"][i]), z, W, start, h)
+                    zb, Wb, sb, hb = event_vjp((ev_t_bar[i], ev_z_bar[i]))
+                    return dict(local, z=local["z"] + zb, W=local["W"] + Wb, start=local["start"] + sb,
+                                h=local["h"] + hb)
+
+                local = jax.lax.fori_loop(*_range(n, _event_elements(spec, c)), event, local)
+            theta_b, z_b, *t_b = element_vjp((local["z1"], local["W"], local["start"], local["h"]))
+            lam = local["z"] + z_b + (ct["node_z"][n] if spec.dense else 0.0)
+            theta_bar = _add(theta_bar, theta_b)
+            times_bar = tuple(a + b for a, b in zip(times_bar, t_b))
+            return lam, acc_bar, theta_bar, times_bar, local["ts"]
+
+        lam, acc_bar, theta_bar, times_bar, ts_bar = jax.lax.fori_loop(
+            0, length, back, (lam, acc_bar, theta_bar, times_bar, ts_bar))
+        return k - 1, lam, acc_bar, theta_bar, times_bar, ts_bar, ok
+
+    s = ((steps + every - 1) // every - 1, lam, acc_bar, zeros(theta), times_bar, ts_bar, c["status"] == Status.SUCCESS)
+    _, lam, acc_bar, (method_bar, run_args_bar), times_bar, ts_bar, ok = jax.lax.while_loop(
+        lambda s: s[0] >= 0, segment, s)
+    t0_bar, t1_bar, h_bar = times_bar
+    if spec.dense:
+        if clock is None:
+            t0_bar = t0_bar + ct["node_t"][0]
+        else:
+            lam = lam.at[clock].add(ct["node_t"][0])
+    q0_bar, p0_bar, args_bar, t0_start_bar = start_vjp((lam, run_args_bar))
+    if spec.observe is not None:
+        q0_a, p0_a, args_a = jax.vjp(spec.acc0, *primal[:3])[1](acc_bar)
+        q0_bar, p0_bar, args_bar = q0_bar + q0_a, p0_bar + p0_a, _add(args_bar, args_a)
+    bar = dict(q0=q0_bar, p0=p0_bar, args=args_bar, method=method_bar, t0=t0_bar + t0_start_bar, t1=t1_bar, ts=ts_bar,
+               h=h_bar)
+    return jax.tree.map(lambda x: jnp.where(ok, x, jnp.nan) if _inexact(x) else x, bar)

@@ -1,0 +1,134 @@
+"""Derivatives of every output of every run kind against central differences of the whole run.
+
+Outputs: the states at ``save_at`` times and at the end, ``Solution.evaluate(t)``, event times
+and states, a terminal event's final state and time. Inputs: q0, p0, args, h (fixed steps), t0,
+t1, the save times and the rule's points and weights. Each check draws a random direction over
+all the inputs at once and compares the forward-mode product J t and the reverse-mode product
+<J^T c, t> with the central difference along t (``helpers.check_first_derivatives``: one
+compiled program). The steps of a controlled run are constants of the trajectory (as in
+diffrax), so its derivative leaves out how the controller's steps move with the inputs;
+central differences of the whole run include that, at the size of the tolerance, which is why
+the tolerances below are tight and the rule's points and weights (whose effect on the states is
+the discretisation error itself) are left out of the PID run's direction.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import galerkin_jax as gj
+import helpers
+
+E = 0.5
+Q0 = jnp.array([1.0 - E, 0.0])
+P0 = jnp.array([0.0, np.sqrt((1.0 + E) / (1.0 - E))])
+T1 = 5.0
+SAVE = jnp.array([0.6, 1.7, 3.3, 4.4])
+GAUSS = gj.gauss_legendre(4)
+
+
+def H(q, p, args):
+    return 0.5 * (p @ p) - args["gm"] / jnp.sqrt(q @ q) + args["j2"] / (q @ q) ** 1.5
+
+
+def pack(q0, p0, gm, j2, t0, t1, ts, h, points, weights):
+    return jnp.concatenate([q0, p0, jnp.array([gm, j2, t0, t1]), ts, jnp.array([h]), points, weights])
+
+
+def unpack(x):
+    sizes = [2, 2, 1, 1, 1, 1, SAVE.size, 1, 4, 4]
+    q0, p0, gm, j2, t0, t1, ts, h, points, weights = jnp.split(x, np.cumsum(sizes)[:-1])
+    return q0, p0, dict(gm=gm[0], j2=j2[0]), t0[0], t1[0], ts, h[0], gj.QuadratureRule(points, weights)
+
+
+X0 = pack(Q0, P0, 1.0, 1e-3, 0.1, T1, SAVE, 0.047, GAUSS.points, GAUSS.weights)  # 104.3 elements of h
+
+
+def outputs(controller, event, x, frozen=()):
+    """Every output of one run, flattened; ``frozen``: inputs held at X0 (not differentiated)."""
+    x = jnp.where(jnp.isin(jnp.arange(X0.size), jnp.asarray(frozen, int)), X0, x)
+    q0, p0, args, t0, t1, ts, h, rule = unpack(x)
+    h = unpack(X0)[6] if H_INDEX in frozen else h  # a controller's h is no input to differentiate (it raises)
+    sol = gj.integrate(H, q0, p0, method=gj.CG(4, rule), h=h, t0=t0, t1=t1, args=args, controller=controller,
+                       save_at=ts, events=event, dense=True)
+    q, p = sol.evaluate(jnp.array([1.2, 2.9]))
+    found = jnp.arange(event.capacity) < 3  # the first three events (the run has five)
+    return jnp.concatenate([sol.q.ravel(), sol.p.ravel(), q.ravel(), p.ravel(),
+                            jnp.where(found, sol.events.t, 0.0),
+                            jnp.where(found[:, None], jnp.concatenate([sol.events.q, sol.events.p], 1), 0.0).ravel()])
+
+
+# indices of the inputs in X0
+RULE = list(range(X0.size - 8, X0.size))
+H_INDEX = X0.size - 9
+SECTION = gj.Event(lambda t, q, p: jnp.sin(3.0 * t) - 0.5 * q[0], capacity=8)
+
+
+@pytest.mark.parametrize("kind", ["fixed", "pid", "time-transform"])
+def test_every_output_of_a_run_against_central_differences(kind):
+    """The measured agreement, relative to the largest entry of J t: fixed steps 4e-10,
+    PID 1e-9 and the time-transformed run 3e-9 (central differences of step 1e-6 err by about
+    1e-10 here, and a controlled run's by its tolerance over the step, 1e-13 / 1e-6)."""
+    controller = {"fixed": None, "pid": gj.PIDController(1e-13, 1e-13), "time-transform": gj.TimeTransform()}[kind]
+    frozen = {"fixed": [], "pid": RULE + [H_INDEX], "time-transform": [H_INDEX]}[kind]
+    helpers.check_first_derivatives(lambda x: outputs(controller, SECTION, x, frozen), (X0,), eps=2e-7, atol=1e-7,
+                                    rtol=2e-6)
+
+
+TERMINAL = gj.Event(lambda t, q, p: q[1] + 0.2, direction=-1, terminal=True)
+
+
+@pytest.mark.parametrize("kind", ["pid", "time-transform"])
+def test_a_terminal_events_time_and_state_end_the_run_and_move_with_the_inputs(kind):
+    """The run ends at the event: its last state and time are the event's, and they move with
+    the inputs as the implicit function theorem on g(t*, z(t*)) = 0 says (central differences of
+    the run include the moving event time)."""
+    controller = {"pid": gj.PIDController(1e-13, 1e-13), "time-transform": gj.TimeTransform()}[kind]
+
+    def end(x):
+        q0, p0, args, t0, t1, _, _, rule = unpack(jnp.where(jnp.isin(jnp.arange(X0.size), jnp.asarray(RULE)), X0, x))
+        sol = gj.integrate(H, q0, p0, method=gj.CG(4, rule), h=0.05, t0=t0, t1=t1, args=args, controller=controller,
+                           events=TERMINAL)
+        return jnp.concatenate([sol.q[-1], sol.p[-1], sol.t[-1:], sol.events.t[:1], sol.events.q[0]])
+
+    sol = gj.integrate(H, Q0, P0, method=gj.CG(4, GAUSS), h=0.05, t0=0.1, t1=T1, args=dict(gm=1.0, j2=1e-3),
+                       controller=controller, events=TERMINAL)
+    assert int(sol.events.count) == 1 and float(sol.t[-1]) == float(sol.events.t[0]) < T1
+    np.testing.assert_array_equal(sol.q[-1], sol.events.q[0])
+    helpers.check_first_derivatives(end, (X0,), eps=2e-7, atol=1e-7, rtol=2e-6)
+
+
+def test_the_end_state_moves_with_t1_as_hamiltons_field():
+    """d z(t1) / d t1 is Hamilton's field at z(t1) (to the run's accuracy), for every run kind,
+    and d z(t1) / d t0 its negative (H does not depend on t): no silent zero."""
+    H0 = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
+    runs = {"pid": dict(h=0.05, controller=gj.PIDController(1e-12, 1e-12)),
+            "time-transform": dict(h=0.05, controller=gj.TimeTransform()),
+            "fixed, reserved": dict(h=0.01, max_steps=600),
+            "fixed, events": dict(h=0.01, events=gj.Event(lambda t, q, p: q[0] - 10.0))}
+    for name, kwargs in runs.items():
+        def end(t0, t1):
+            sol = gj.integrate(H0, Q0, P0, method=gj.CG(4, GAUSS), t0=t0, t1=t1, **kwargs)
+            return jnp.concatenate([sol.q[-1], sol.p[-1]])
+
+        d_t0, d_t1 = jax.jacfwd(end, argnums=(0, 1))(0.0, T1)
+        q, p = end(0.0, T1)[:2], end(0.0, T1)[2:]
+        field = jnp.concatenate([p, -q / jnp.sqrt(q @ q) ** 3])
+        np.testing.assert_allclose(d_t1, field, rtol=0, atol=1e-7, err_msg=name)
+        np.testing.assert_allclose(d_t0, -field, rtol=0, atol=1e-7, err_msg=name)
+        assert np.allclose(jax.jacrev(end, argnums=1)(0.0, T1), d_t1, rtol=1e-12, atol=1e-12), name
+
+
+def test_derivatives_that_do_not_exist_raise_naming_the_input():
+    """A controller's first step, its tolerances and a second derivative raise; they are never
+    a silent zero."""
+    H0 = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
+    run = lambda h, rtol=1e-8, q0=Q0: gj.integrate(H0, q0, P0, method=gj.CG(2, gj.gauss_legendre(2)), h=h, t1=1.0,
+                                                   controller=gj.PIDController(rtol, 1e-8)).q[-1, 0]
+    with pytest.raises(ValueError, match="h has no derivative"):
+        jax.grad(run)(0.05)
+    with pytest.raises(ValueError, match="tolerances"):
+        jax.grad(lambda rtol: run(0.05, rtol))(1e-8)
+    with pytest.raises(NotImplementedError, match="Second derivatives"):
+        jax.hessian(lambda q0: run(0.05, q0=q0))(Q0)

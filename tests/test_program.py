@@ -1,0 +1,149 @@
+"""The compiled program: its size against a recorded budget, and no compilation where only values change.
+
+Compile time is a cost a user pays on every new configuration, and XLA's part of it grows with
+the program (about 4-8 ms per kernel on the two-core machine: ``benchmarks/bench_compile.py``).
+A timing would be noisy; the size of the lowered program is not: lowering is deterministic, so
+``test_programs_stay_within_their_budget`` fails wherever a change bloats a standard program.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import galerkin_jax as gj
+from galerkin_jax import scenes
+from helpers import kepler
+
+# StableHLO operations (SSA definitions of the lowered module) of four standard programs, as
+# measured with JAX 0.10.2 (benchmarks/results/compile.json has the same programs' kernels),
+# and the margin a change may add before the test asks for a look (and a new budget, if the
+# growth is wanted).
+BUDGETS = {"kepler fixed": 4141, "kepler PID": 4181, "fput fixed": 2821, "kepler gradient": 4312}
+MARGIN = 1.10
+
+
+def operations(fn, *args):
+    """The operations of ``jax.jit(fn)`` lowered at ``args``."""
+    return sum(" = " in line for line in jax.jit(fn).lower(*args).as_text().splitlines())
+
+
+def _programs():
+    H, q0, p0 = kepler(0.6)
+    cg6 = gj.CG(6, gj.gauss_legendre(6))
+    fput = scenes.fput(64)
+    fixed = lambda H, method: lambda q0, p0: gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=1000)
+    pid = lambda q0, p0: gj.integrate(H, q0, p0, method=cg6, h=0.01, t1=6.0, controller=gj.PIDController(1e-10, 1e-10))
+    gradient = jax.grad(lambda q0, p0: jnp.sum(fixed(H, cg6)(q0, p0).q[-1] ** 2))
+    return {"kepler fixed": (fixed(H, cg6), q0, p0), "kepler PID": (pid, q0, p0),
+            "fput fixed": (fixed(fput.H, gj.CG(4, gj.gauss_legendre(4))), jnp.asarray(fput.q0), jnp.asarray(fput.p0)),
+            "kepler gradient": (gradient, q0, p0)}
+
+
+@pytest.mark.parametrize("name", sorted(BUDGETS))
+def test_programs_stay_within_their_budget(name):
+    fn, *args = _programs()[name]
+    count = operations(fn, *args)
+    assert count <= MARGIN * BUDGETS[name], f"{name}: {count} operations, budget {BUDGETS[name]} (+10 %)"
+    # a budget far above the program hides the next bloat: record the new size when it shrinks
+    assert count >= 0.8 * BUDGETS[name], f"{name}: {count} operations, budget {BUDGETS[name]}: record the new size"
+
+
+class Compilations:
+    """Counts XLA compilations (``jax.monitoring``'s backend-compile events)."""
+
+    def __init__(self):
+        self.count = 0
+        jax.monitoring.register_event_duration_secs_listener(self._listen)
+
+    def _listen(self, event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            self.count += 1
+
+    def of(self, run):
+        before = self.count
+        jax.block_until_ready(run())
+        return self.count - before
+
+
+COMPILATIONS = Compilations()
+
+
+def _run(H, q0, p0, **kwargs):
+    return lambda: gj.integrate(H, q0, p0, **kwargs)
+
+
+@pytest.mark.parametrize("case", ["method built anew", "other tolerances", "other t1", "other save_at",
+                                  "other t1, time-transformed", "other t1, fixed steps reserved", "other state"])
+def test_runs_that_differ_only_in_values_do_not_compile_again(case):
+    H, q0, p0 = kepler(0.6)
+    cg = lambda: gj.CG(4, gj.gauss_legendre(4))
+    pid = lambda tol: gj.PIDController(rtol=tol, atol=tol)
+    first, second = {
+        "method built anew": (dict(method=cg(), h=0.01, n_steps=50), dict(method=cg(), h=0.01, n_steps=50)),
+        "other tolerances": (dict(method=cg(), h=0.01, t1=2.0, controller=pid(1e-8)),
+                             dict(method=cg(), h=0.02, t1=2.0, controller=pid(1e-6))),
+        "other t1": (dict(method=cg(), h=0.01, t1=2.0, controller=pid(1e-8)),
+                     dict(method=cg(), h=0.01, t1=3.0, controller=pid(1e-8))),
+        "other save_at": (dict(method=cg(), h=0.01, t1=2.0, controller=pid(1e-8), save_at=jnp.linspace(0.0, 2.0, 5)),
+                          dict(method=cg(), h=0.01, t1=2.0, controller=pid(1e-8), save_at=jnp.linspace(0.5, 1.5, 5))),
+        "other t1, time-transformed": (dict(method=cg(), h=0.1, t1=2.0, controller=gj.TimeTransform()),
+                                       dict(method=cg(), h=0.1, t1=3.0, controller=gj.TimeTransform())),
+        "other t1, fixed steps reserved": (dict(method=cg(), h=0.01, t1=2.0, max_steps=400),
+                                           dict(method=cg(), h=0.01, t1=3.5, max_steps=400)),
+        "other state": (dict(method=cg(), h=0.01, n_steps=50), dict(method=cg(), h=0.01, n_steps=50)),
+    }[case]
+    COMPILATIONS.of(_run(H, q0, p0, **first))
+    q1, p1 = (q0, 0.99 * p0) if case == "other state" else (q0, p0)
+    jax.block_until_ready(p1)  # the scaling compiles a program of its own, which is not the run's
+    assert COMPILATIONS.of(_run(H, q1, p1, **second)) == 0
+
+
+def test_fixed_steps_to_t1_within_their_reserve_end_at_t1_and_beyond_it_stop_with_max_steps():
+    """``max_steps`` with fixed steps to t1 reserves the elements (so that another t1 compiles
+    nothing): within it the run equals the one without; beyond it, it stops after the reserve
+    with status MAX_STEPS and the state there, where ``n_steps`` full elements end."""
+    H, q0, p0 = kepler(0.6)
+    method = gj.CG(4, gj.gauss_legendre(4))
+    exact_count = gj.integrate(H, q0, p0, method=method, h=0.01, t1=3.005)
+    reserved = gj.integrate(H, q0, p0, method=method, h=0.01, t1=3.005, max_steps=400)
+    assert int(reserved.status) == 0 and float(reserved.t[-1]) == 3.005
+    assert int(reserved.stats["num_steps"]) == int(exact_count.stats["num_steps"]) == 301
+    np.testing.assert_allclose(reserved.q[-1], exact_count.q[-1], rtol=0, atol=1e-15)
+    short = gj.integrate(H, q0, p0, method=method, h=0.01, t1=3.005, max_steps=200)
+    full = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=200)
+    assert int(short.status) == gj.Status.MAX_STEPS and int(short.stats["num_steps"]) == 200
+    np.testing.assert_allclose(float(short.t[-1]), 2.0, rtol=1e-15)
+    np.testing.assert_array_equal(short.q[-1], full.q[-1])
+
+
+_CACHED_RUN = """
+import sys, jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+import galerkin_jax as gj
+gj.use_compilation_cache(sys.argv[1])
+programs, hits = [], []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **kw: programs.append(event) if event == "/jax/core/compile/backend_compile_duration" else None)
+jax.monitoring.register_event_listener(
+    lambda event, **kw: hits.append(event) if event == "/jax/compilation_cache/cache_hits" else None)
+H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
+sol = gj.integrate(H, jnp.array([0.4, 0.0]), jnp.array([0.0, 2.0]), method=gj.CG(3, gj.gauss_legendre(3)), h=0.01,
+                   t1=1.0, controller=gj.PIDController(1e-8, 1e-8))
+print(len(programs), len(hits), int(sol.status))
+"""
+
+
+def test_a_second_process_with_the_compilation_cache_compiles_nothing(tmp_path):
+    """``gj.use_compilation_cache(folder)``: the first process compiles its programs (the run,
+    and the small ones of the checks before it) and keeps them; a second one loads them all."""
+    import subprocess
+    import sys
+
+    runs = [subprocess.run([sys.executable, "-c", _CACHED_RUN, str(tmp_path)], capture_output=True, text=True,
+                           timeout=600) for _ in range(2)]
+    assert all(run.returncode == 0 for run in runs), runs[-1].stderr[-2000:]
+    (programs, hits, status), (programs_again, hits_again, _) = (map(int, run.stdout.split()[-3:]) for run in runs)
+    assert status == 0 and programs >= 1 and hits == 0
+    assert programs_again == hits_again == programs  # each program of the second process loaded
+    assert any(tmp_path.iterdir())
