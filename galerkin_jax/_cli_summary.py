@@ -37,11 +37,32 @@ HINTS = {
     "dgrad": ("the energy is conserved to round-off", {"round-off"}),
 }
 HINTS["lvi"] = HINTS["vi"]
+# the symplectic methods, as their hints name them: what a step rule does to that structure
+SYMPLECTIC = {"cg_gauss": "cG(k) with k Gauss points is Gauss collocation, a symplectic method",
+              "vi": "a variational integrator is symplectic", "lvi": "a variational integrator is symplectic"}
+UNDER_CONTROL = {
+    "pid": (" with fixed steps; steps chosen from the state by error-per-step control break that structure, so "
+            "the energy error can drift over long runs (--time-transform varies the steps and keeps it)",
+            {"round-off", "bounded", "drift"}),
+    "time-transform": (", and the time transformation keeps it symplectic (a constant step in the fictive time tau "
+                       "on the extended phase space): the energy error oscillates and does not drift",
+                       {"round-off", "bounded"}),
+}
+TIME_TRANSFORMED_DGRAD = ("the time transformation hands the method K = s (H + p_t), which it conserves as far as its "
+                          "line integral of DK is exact; the energy error is K / s", {"round-off", "bounded"})
 
 
-def _hint(spec):
+def _hint(spec, controller=None):
+    """``(words, verdicts that agree)`` for the method of ``spec`` under ``controller`` (None:
+    fixed steps, "pid" or "time-transform")."""
     gauss = spec.kind == "cg" and spec.rule == "gauss" and spec.points == spec.degree
-    return HINTS["cg_gauss" if gauss else spec.kind]
+    key = "cg_gauss" if gauss else spec.kind
+    if controller in UNDER_CONTROL and key in SYMPLECTIC:
+        tail, agrees = UNDER_CONTROL[controller]
+        return SYMPLECTIC[key] + tail, agrees
+    if controller == "time-transform" and key == "dgrad":
+        return TIME_TRANSFORMED_DGRAD
+    return HINTS[key]
 
 
 def energy_verdict(change, eps):
@@ -70,16 +91,26 @@ def energy_verdict(change, eps):
     return "bounded", f"is {first:.1e} at most in the first quarter of the run and {last:.1e} in the last: no drift"
 
 
-def closing_line(png, spec, change, eps, relative, h):
-    """The summary's last line: what the energy error did, whether the method promised it,
-    and, where the error is large, that the steps are too large."""
+def remedy(controller, h, tol):
+    """What to change where the steps are too coarse: a smaller --step-size (the step in tau
+    under the time transformation) or, under error-per-step control, a smaller --tol."""
+    if controller == "pid":
+        return f"the tolerance is too loose for this scene: try a smaller --tol than {tol:g}"
+    where = " (the step in the fictive time tau)" if controller == "time-transform" else ""
+    return f"the steps are too large for this scene: try a smaller --step-size than {h:g}{where}"
+
+
+def closing_line(png, spec, change, eps, relative, h, controller=None, tol=None):
+    """The summary's last line: what the energy error did, whether the method promised it
+    (under the run's step rule: ``controller`` None, "pid" or "time-transform"), and, where
+    the error is large, that the steps are too coarse."""
     verdict, words = energy_verdict(change, eps)
     largest = float(np.max(change))
     if largest >= LARGE:
         size = f"{100 * largest:.3g} % of |H(0)|" if relative else f"{largest:.2e}"
-        return (f"Look at {png}: the energy error is large, up to {size}, and {words}. The steps are too large "
-                f"for this scene: try a smaller --step-size than {h:g}.")
-    hint, agrees = _hint(spec)
+        fix = remedy(controller, h, tol)
+        return f"Look at {png}: the energy error is large, up to {size}, and {words}. {fix[0].upper()}{fix[1:]}."
+    hint, agrees = _hint(spec, controller)
     if verdict in agrees:
         return f"Look at {png}: the energy error {words}. As expected: {hint}."
     return f"Look at {png}: the energy error {words}. Not what the method usually does: {hint}."
@@ -91,20 +122,50 @@ def unknowns(method, q0, p0):
     return sum(int(np.prod(x.shape)) for x in jax.tree.leaves(guess))
 
 
+# the command's own words for statuses whose library message names Python arguments
+COMMAND_WORDS = {
+    gj.Status.MAX_STEPS: "The run reached --max-steps (accepted and rejected steps together) before its end time.",
+    gj.Status.TIME_TRANSFORM: (
+        "The time transformation's step density s(q, p) was not positive and finite at a state of the run: the "
+        "command's s, the default (|F(z0)| / |F(z)|)^(3/4) with F Hamilton's field, fails where F vanishes, at an "
+        "equilibrium (at the start or on the way)."
+    ),
+}
+
+
 def failure_words(status, n_unknowns, krylov):
-    """``gj.status_message(status)``, less its advice on Newton-Krylov where that cannot help
-    (at most ``DENSE_LIMIT`` unknowns per element, or --krylov given), in the command's terms."""
-    sentences = re.split(r"(?<=\.)\s+", gj.status_message(status))
+    """``gj.status_message(status)`` in the command's terms (``COMMAND_WORDS``), less its advice
+    on Newton-Krylov where that cannot help (at most ``DENSE_LIMIT`` unknowns per element, or
+    --krylov given)."""
+    message = COMMAND_WORDS.get(int(status)) or gj.status_message(status)
+    sentences = re.split(r"(?<=\.)\s+", message)
     applies = n_unknowns > DENSE_LIMIT and not krylov
     return " ".join(s.replace("krylov=True", "--krylov") for s in sentences if applies or "krylov" not in s.lower())
 
 
-def failure_message(status, n_unknowns, krylov, h):
+def what_to_try(status, n_unknowns, krylov, h, controller=None, tol=None, max_steps=None):
+    """The last sentence of a failed run's message: which option to change, for the run's
+    step rule (``controller`` None, "pid" or "time-transform")."""
+    more = " or --krylov" if n_unknowns > DENSE_LIMIT and not krylov else ""
+    status = int(status)
+    if status == gj.Status.TIME_TRANSFORM:
+        return "Try --tol or fixed steps (--t-end alone): the command's time transformation has only the default s."
+    if status == gj.Status.MAX_STEPS:
+        other = f"a looser --tol than {tol:g}" if controller == "pid" else f"a larger --step-size than {h:g}"
+        return f"Try a larger --max-steps than {max_steps} or {other}."
+    if controller == "pid":
+        if status == gj.Status.DTMIN:
+            return f"Try a looser --tol than {tol:g}, or fixed steps."
+        return f"Try a smaller --tol than {tol:g}{more}."
+    where = " (the step in tau)" if controller == "time-transform" else ""
+    return f"Try a smaller --step-size than {h:g}{where}{more}."
+
+
+def failure_message(status, n_unknowns, krylov, h, controller=None, tol=None, max_steps=None):
     """One line for a failed run: the status, its message, and what to try."""
     name = gj.Status(status).name
-    more = " or --krylov" if n_unknowns > DENSE_LIMIT and not krylov else ""
     return (f"the solve failed (status {status}, {name}): {failure_words(status, n_unknowns, krylov)} "
-            f"Try a smaller --step-size than {h:g}{more}.")
+            f"{what_to_try(status, n_unknowns, krylov, h, controller, tol, max_steps)}")
 
 
 def state_words(problem):
@@ -115,10 +176,12 @@ def state_words(problem):
     return f"d = {problem.d} degrees of freedom"
 
 
-def run_summary(problem, spec, solution, energy, invariants, h, n_steps, times, files, n_unknowns, krylov):
+def run_summary(problem, spec, solution, energy, invariants, h, n_steps, times, files, n_unknowns, krylov,
+                controller=None, tol=None):
     """The summary of a run, for a reader who has not read the papers; returns the text.
     ``n_unknowns`` (per element) and ``krylov`` (given) decide whether a failure's message
-    mentions --krylov (``failure_words``)."""
+    mentions --krylov (``failure_words``); ``controller`` (None: fixed steps, "pid" with its
+    ``tol``, or "time-transform") how the closing line judges the energy error."""
     t, status = np.asarray(solution.t), int(solution.status)
     lines = [
         ("scene", f"{problem.name}: {problem.description} ({state_words(problem)})"),
@@ -149,7 +212,7 @@ def run_summary(problem, spec, solution, energy, invariants, h, n_steps, times, 
         return text
     energy_png = next(f for f in files if f.endswith("_energy.png"))
     eps = float(np.finfo(energy.dtype).eps)
-    return text + "\n" + closing_line(energy_png, spec, change, eps, relative, h)
+    return text + "\n" + closing_line(energy_png, spec, change, eps, relative, h, controller, tol)
 
 
 def accuracy_lines(problem, solution, n_steps):
@@ -173,12 +236,26 @@ def accuracy_lines(problem, solution, n_steps):
     return lines
 
 
-def with_step_rule(text, solution, rule):
+def step_range(solution):
+    """``(smallest, largest)`` step in t of a run whose saved states are its steps' ends (one
+    state more than steps), else None (states between the steps: the steps are not known)."""
+    t = np.asarray(solution.t)
+    if len(t) != int(solution.stats["num_steps"]) + 1 or len(t) < 2:
+        return None
+    steps = np.diff(t)
+    return float(np.min(steps)), float(np.max(steps))
+
+
+def with_step_rule(text, solution, rule, controller=None):
     """The summary of a run to an end time, with a line on how its steps were chosen: the
-    accepted and rejected steps and the smallest and largest h."""
+    accepted and rejected steps and the smallest and largest h (under the time transformation
+    h in tau, and the steps in t where the saved states are the steps' ends)."""
     stats = solution.stats
     line = (f"{'control':<9}{rule}: {int(stats['num_steps'])} steps, {int(stats['num_rejected_steps'])} rejected, "
             f"h from {float(stats['min_step']):.3g} to {float(stats['max_step']):.3g}")
+    span = step_range(solution)
+    if controller == "time-transform" and span is not None:
+        line += f"; steps in t from {span[0]:.3g} to {span[1]:.3g}"
     lines = text.split("\n")
     at = next((i for i, l in enumerate(lines) if l.startswith("steps")), 0)
     t = np.asarray(solution.t)

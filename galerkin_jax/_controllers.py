@@ -21,6 +21,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._defect import hamilton_field, symplectic_field
 from ._pytree import pytree_dataclass
@@ -61,6 +62,16 @@ class PIDController:
             tolerances").
         predictive: bound the factor by Gustafsson's predictive controller (above); False (with
             ``failfactor=factormin``) gives diffrax's controller. Static.
+
+    Raises:
+        ValueError: at construction, for a concrete value out of its range (``BOUNDS``: rtol,
+            atol > 0; 0 < safety <= 1; 0 < factormin < 1 < factormax; 0 < failfactor < 1;
+            0 <= dtmin < dtmax; finite PID coefficients), each entry of an array of values (a
+            sweep's) included. Traced values are not read; ``integrate`` and ``sweep`` check
+            the shapes. The check runs where you construct the controller, not where JAX
+            rebuilds it (``jax.tree.map``, ``vmap``'s axis specs, cotangents), so build axis
+            specs with ``jax.tree.map``.
+        TypeError: ``predictive`` not a bool.
     """
 
     rtol: float
@@ -75,6 +86,11 @@ class PIDController:
     factormax: float = 10.0
     failfactor: float = 0.5
     predictive: bool = dataclasses.field(default=True, metadata=dict(static=True))
+
+    def _check_on_construction(self):
+        if not isinstance(self.predictive, bool):
+            raise TypeError(f"PIDController: predictive must be a bool, got {self.predictive!r}.")
+        check_values(concrete_values(self), "PIDController: ")
 
     def next_factor(self, err, err_prev, err_prev2, order, accepted, h_ratio):
         """The factor on h after a step with scaled error ``err`` (inf for a failed solve);
@@ -94,6 +110,67 @@ class PIDController:
         factor = jnp.where(jnp.isfinite(err), factor, self.failfactor)  # the clip below keeps factormin
         upper = jnp.where(accepted, self.factormax, 1.0)
         return jnp.clip(factor, self.factormin, upper)
+
+
+# the range of each numeric field of a PIDController: (test on a float array, in words)
+BOUNDS = {
+    "rtol": (lambda v: v > 0, "> 0"),
+    "atol": (lambda v: v > 0, "> 0"),
+    "pcoeff": (np.isfinite, "finite"),
+    "icoeff": (np.isfinite, "finite"),
+    "dcoeff": (np.isfinite, "finite"),
+    "dtmin": (lambda v: v >= 0, ">= 0"),
+    "dtmax": (lambda v: v > 0, "> 0"),
+    "safety": (lambda v: (v > 0) & (v <= 1), "in (0, 1]"),
+    "factormin": (lambda v: (v > 0) & (v < 1), "in (0, 1)"),
+    "factormax": (lambda v: v > 1, "> 1"),
+    "failfactor": (lambda v: (v > 0) & (v < 1), "in (0, 1)"),
+}
+
+
+def concrete_values(controller):
+    """``{field: float array}`` of the PIDController's numeric fields whose values are concrete
+    (numbers, NumPy arrays, JAX arrays outside a trace); tracers and other objects are left out."""
+    values = {}
+    for field in dataclasses.fields(controller):
+        x = getattr(controller, field.name)
+        if field.name not in BOUNDS or isinstance(x, (bool, np.bool_, jax.core.Tracer)):
+            continue
+        if not isinstance(x, (int, float, np.number, np.ndarray, jax.Array)):
+            continue
+        try:
+            v = np.asarray(x)
+        except Exception:  # e.g. an array not fully addressable from this process
+            continue
+        if v.dtype.kind in "iuf":
+            values[field.name] = v.astype(float)
+    return values
+
+
+def _shown(v, bad):
+    """``v`` (a scalar), or its first bad entry and where, for an array of values."""
+    if v.ndim == 0:
+        return f"{float(v)!r}"
+    index = tuple(int(i) for i in np.argwhere(bad)[0])
+    where = index[0] if len(index) == 1 else index
+    return f"{float(v[index])!r} (entry {where} of {v.shape[0] if v.ndim == 1 else v.shape})"
+
+
+def check_values(values, prefix):
+    """Raise ``ValueError`` for a value of ``values`` (``concrete_values``) outside ``BOUNDS``,
+    or dtmin >= dtmax; ``prefix`` names the controller, e.g. ``"PIDController: "``."""
+    for name, (ok, words) in BOUNDS.items():
+        if name in values:
+            with np.errstate(invalid="ignore"):
+                bad = ~ok(values[name])
+            if np.any(bad):
+                raise ValueError(f"{prefix}{name} must be {words}, got {_shown(values[name], bad)}.")
+    if "dtmin" in values and "dtmax" in values:
+        dtmin, dtmax = np.broadcast_arrays(values["dtmin"], values["dtmax"])
+        bad = ~(dtmin < dtmax)
+        if np.any(bad):
+            raise ValueError(f"{prefix}dtmin must be < dtmax, got dtmin = {_shown(dtmin, bad)} and "
+                             f"dtmax = {_shown(dtmax, bad)}.")
 
 
 def default_step_density(H, F0):
@@ -129,9 +206,16 @@ class TimeTransform:
         s: ``s(q, p) -> scalar > 0``, the step density (small where the motion is fast), with
             q and p in the state's own shape, or ``s(q, p, args)`` when ``args`` is passed; None: ``default_step_density``. A
             non-positive or non-finite s inside a run ends it with status TIME_TRANSFORM.
+
+    Raises:
+        TypeError: ``s`` neither None nor callable.
     """
 
     s: object = dataclasses.field(default=None, metadata=dict(static=True))
+
+    def __post_init__(self):  # s is static: the user's object, also where JAX rebuilds the node
+        if self.s is not None and not callable(self.s):
+            raise TypeError(f"TimeTransform: s must be a callable s(q, p), got {type(self.s).__name__}.")
 
 
 @pytree_dataclass

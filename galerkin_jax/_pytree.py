@@ -9,6 +9,7 @@ registered with ``register_pytree_with_keys`` compare their classes.
 """
 
 import dataclasses
+import functools
 
 import jax
 
@@ -18,9 +19,25 @@ def pytree_dataclass(cls):
 
     Fields with ``metadata={"static": True}`` are auxiliary data (hashed, compared, part of
     the tree structure: a new value means a new compilation); the others are children.
-    Unflattening calls the constructor, so ``__post_init__`` runs on every rebuilt node.
+    Unflattening calls the dataclass's ``__init__``, so ``__post_init__`` runs on every rebuilt
+    node, whose children may be tracers, cotangents, tree-map results or the objects JAX puts
+    in axis specs: it may check static fields only.
+
+    A class may define ``_check_on_construction(self)``: it runs after ``__init__`` when the
+    user constructs the node (``cls(...)``, ``dataclasses.replace``), not when JAX rebuilds it,
+    so it may check the values of the children the user gave (where they are concrete).
     """
     cls = dataclasses.dataclass(frozen=True)(cls)
+    init = cls.__init__
+    check = getattr(cls, "_check_on_construction", None)
+    if check is not None:
+
+        @functools.wraps(init)
+        def checked_init(self, *args, **kwargs):
+            init(self, *args, **kwargs)
+            check(self)
+
+        cls.__init__ = checked_init
     fields = dataclasses.fields(cls)
     static = tuple(f.name for f in fields if f.metadata.get("static", False))
     children = tuple(f.name for f in fields if not f.metadata.get("static", False))
@@ -34,7 +51,9 @@ def pytree_dataclass(cls):
         return tuple(zip(keys, leaves)), aux
 
     def unflatten(aux, leaves):
-        return cls(**dict(zip(static, aux)), **dict(zip(children, leaves)))
+        node = object.__new__(cls)
+        init(node, **dict(zip(static, aux)), **dict(zip(children, leaves)))  # without the construction check
+        return node
 
     jax.tree_util.register_pytree_with_keys(cls, flatten_with_keys, unflatten, flatten)
     return cls

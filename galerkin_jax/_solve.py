@@ -118,8 +118,12 @@ MESSAGES = {
         "the solution may be singular there, or the tolerance below what the precision allows."
     ),
     Status.TIME_TRANSFORM: (
-        "The time transformation's s(q, p) was not positive and finite (e.g. the default s at an "
-        "equilibrium, where Hamilton's field vanishes); pass a TimeTransform(s=...) of your own."
+        "The time transformation's step density s(q, p) was not positive and finite at a state of "
+        "the run. The default s (TimeTransform()) fails where Hamilton's field vanishes, at an "
+        "equilibrium (at the start or on the way): pass a TimeTransform(s=...) of your own there, "
+        "or use fixed steps or a PIDController. A TimeTransform(s=...) of your own must stay positive "
+        "and finite at every state the orbit reaches: look where your s vanishes, changes sign or "
+        "divides by zero."
     ),
 }
 

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._controllers import Event, PIDController, TimeTransform
+from ._controllers import Event, PIDController, TimeTransform, check_values, concrete_values
 
 
 def concrete(*xs):
@@ -51,35 +51,26 @@ def check_controller(controller, method, batch=None):
             "estimate or the time transformation: use GalerkinVI on the matching H, or fixed steps."
         )
     if isinstance(controller, TimeTransform):
+        if type(method).__name__ == "ModifiedMidpoint":
+            raise ValueError(
+                "ModifiedMidpoint needs H = |p|^2 / 2m + V(|q|) (a central force), and the time "
+                "transformation hands it K = s(q, p) (H + p_t) on (q, t | p, p_t), which is not of that "
+                "form: use fixed steps or a PIDController, whose steps of any length keep its conservation of H."
+            )
         if controller.s is not None and not callable(controller.s):
             raise TypeError(f"TimeTransform.s must be a callable s(q, p), got {type(controller.s).__name__}.")
         return
     if not isinstance(controller.predictive, bool):
         raise TypeError(f"controller.predictive must be a bool, got {controller.predictive!r}.")
     shapes = [()] if batch is None else [(), (batch,)]
-    values = {}
     for field in dataclasses.fields(controller):
         x = getattr(controller, field.name)
         if jnp.shape(x) not in shapes:
             allowed = "a scalar" if batch is None else f"a scalar or of shape ({batch},)"
             raise ValueError(f"controller.{field.name} must be {allowed}, got shape {jnp.shape(x)}.")
-        if concrete(x):
-            values[field.name] = np.asarray(x, dtype=float)
-    bounds = {
-        "rtol": lambda v: v > 0, "atol": lambda v: v > 0, "safety": lambda v: (v > 0) & (v <= 1),
-        "factormin": lambda v: (v > 0) & (v < 1), "factormax": lambda v: v > 1,
-        "failfactor": lambda v: (v > 0) & (v < 1),
-        "dtmin": lambda v: v >= 0, "dtmax": lambda v: v > 0,
-    }
-    for name, ok in bounds.items():
-        if name in values and not np.all(ok(values[name])):
-            raise ValueError(f"controller.{name} out of range: got {values[name]} (rtol, atol > 0; 0 < safety <= 1; "
-                             "0 < factormin < 1 < factormax; 0 < failfactor < 1; 0 <= dtmin < dtmax).")
-    for name in ("pcoeff", "icoeff", "dcoeff"):
-        if name in values and not np.all(np.isfinite(values[name])):
-            raise ValueError(f"controller.{name} must be finite, got {values[name]}.")
-    if "dtmin" in values and "dtmax" in values and not np.all(values["dtmin"] < values["dtmax"]):
-        raise ValueError(f"controller needs dtmin < dtmax, got {values['dtmin']} and {values['dtmax']}.")
+    # a controller built by the user was checked at construction; one rebuilt by JAX (a tree
+    # map, a stacked sweep's) is checked here
+    check_values(concrete_values(controller), "controller.")
 
 
 def check_max_steps(max_steps):
@@ -122,8 +113,16 @@ def check_event(event, q0, p0, t0):
         out = jax.eval_shape(event.g, jnp.asarray(t0, q0.dtype), q0, p0)
     except TypeError as error:
         raise TypeError(f"Event.g could not be called as g(t, q, p): {error}") from error
-    if getattr(out, "shape", None) != ():
-        raise ValueError(f"Event.g must return a scalar, got shape {getattr(out, 'shape', None)}.")
+    shape = getattr(out, "shape", None)
+    if shape != ():
+        got = f"an array of shape {shape}" if shape is not None else f"{type(out).__name__}"
+        raise ValueError(f"Event.g ({_name(event.g)}) must return a scalar, got {got} (q0 of shape "
+                         f"{tuple(q0.shape)}): one number whose sign changes at the event, e.g. q[0] rather than q.")
+
+
+def _name(f):
+    """A function's name for a message, e.g. ``section`` or ``<lambda>``."""
+    return getattr(f, "__name__", None) or repr(f)
 
 
 def fixed_step_count(t0, t1, h):

@@ -278,14 +278,16 @@ def run_command(options):
         n_steps = int(solution.stats["num_steps"])
         solution = _nodes(solution, n_steps)
     energy, invariants = _observe(problem, solution)
-    files = _write_run(problem, spec, solution, energy, invariants, h, n_steps, options)
+    files = _write_run(problem, spec, solution, energy, invariants, h, n_steps, options, span)
     n_unknowns = summary.unknowns(method, q0, p0)
+    rule = dict(controller=None, tol=None) if span is None else dict(controller=span["name"], tol=span["tol"])
     text = summary.run_summary(problem, spec, solution, energy, invariants, h, n_steps, (compile_s, run_s), files,
-                               n_unknowns, options.krylov)
-    print(text if span is None else summary.with_step_rule(text, solution, span["rule"]))
+                               n_unknowns, options.krylov, **rule)
+    print(text if span is None else summary.with_step_rule(text, solution, span["rule"], span["name"]))
     status = int(solution.status)
     if status:
-        raise CliError(summary.failure_message(status, n_unknowns, options.krylov, h), code=EXIT_FAILED_SOLVE)
+        raise CliError(summary.failure_message(status, n_unknowns, options.krylov, h, max_steps=options.max_steps,
+                                               **rule), code=EXIT_FAILED_SOLVE)
     return 0
 
 
@@ -302,7 +304,8 @@ def _nodes(solution, n_steps):
 def _span(options, problem, h):
     """``None`` for a run of ``--steps``, else its end time, controller and how to say it:
     ``--t-end`` (or the scene's ``t1``) with fixed steps, ``--tol`` (or the scene's ``tol``) or
-    ``--time-transform`` for variable ones."""
+    ``--time-transform`` for variable ones. ``name`` ("pid", "time-transform" or None for fixed
+    steps) goes into the file names and tells the summary how the steps were chosen."""
     t1 = options.t_end or problem.t1
     tol = options.tol or (None if options.time_transform else problem.tol)
     if options.tol and options.time_transform:
@@ -314,10 +317,12 @@ def _span(options, problem, h):
     if t1 is None or (options.steps and not (tol or options.time_transform)):
         return None
     if tol:
-        return dict(t1=t1, controller=gj.PIDController(rtol=tol, atol=tol), rule=f"error per step, tol = {tol:g}")
+        return dict(t1=t1, controller=gj.PIDController(rtol=tol, atol=tol), rule=f"error per step, tol = {tol:g}",
+                    name="pid", tol=tol)
     if options.time_transform:
-        return dict(t1=t1, controller=gj.TimeTransform(), rule="time transformation (default s), h in tau")
-    return dict(t1=t1, controller=None, rule="fixed steps, the last shortened to land on t1")
+        return dict(t1=t1, controller=gj.TimeTransform(), rule="time transformation (default s), h in tau",
+                    name="time-transform", tol=None)
+    return dict(t1=t1, controller=None, rule="fixed steps, the last shortened to land on t1", name=None, tol=None)
 
 
 def _dense(spec, n_steps, d):
@@ -338,19 +343,43 @@ def _observe(problem, solution):
     return values[0], dict(zip(problem.invariants, values[1:]))
 
 
-def _write_run(problem, spec, solution, energy, invariants, h, n_steps, options):
+def run_stem(problem, spec, span):
+    """The files' common name, e.g. ``kepler_cG3-gauss3``; a run whose steps a controller
+    chose adds it (``_pid``, ``_time-transform``), so that it does not overwrite the
+    fixed-step run's files."""
+    name = None if span is None else span["name"]
+    return f"{problem.name}_{specs.tag(spec)}" + ("" if name is None else f"_{name}")
+
+
+def plot_title(problem, spec, h, span, solution):
+    """E.g. ``kepler, cG(3) Gauss-Legendre 3, h = 0.05``; under a controller, on a second line,
+    how it chose the steps and their range in t where the saved states are the steps' ends
+    (the time transformation's h is its step in the fictive time tau)."""
+    name = None if span is None else span["name"]
+    steps = summary.step_range(solution) if name is not None else None
+    if name == "pid":
+        words = f"tol = {span['tol']:g}" + ("" if steps is None else f", h from {steps[0]:.3g} to {steps[1]:.3g}")
+    elif name == "time-transform":
+        words = f"h = {h:g} in tau" + ("" if steps is None else f", steps in t from {steps[0]:.3g} to {steps[1]:.3g}")
+    else:
+        return f"{problem.name}, {specs.short(spec)}, h = {h:g}"
+    return f"{problem.name}, {specs.short(spec)}\n{words}"  # two lines: the plots are 5 and 7 inches wide
+
+
+def _write_run(problem, spec, solution, energy, invariants, h, n_steps, options, span=None):
     """The trajectory (NPZ or CSV) and the two plots of a run; returns their paths."""
     os.makedirs(options.out, exist_ok=True)
-    stem = os.path.join(options.out, f"{problem.name}_{specs.tag(spec)}")
+    stem = os.path.join(options.out, run_stem(problem, spec, span))
     status = int(solution.status)
     columns = dict(t=solution.t, q=solution.q, p=solution.p, energy=energy,
                    **{f"invariant_{name}": value for name, value in invariants.items()})
     meta = dict(scene=problem.description, method=specs.describe(spec), h=h, n_steps=n_steps,
                 save_every=options.save_every, status=status, status_message=gj.status_message(status),
-                state_shape=np.asarray(problem.shape or problem.q0.shape))
+                state_shape=np.asarray(problem.shape or problem.q0.shape),
+                step_rule=f"fixed steps of h = {h:g}" if span is None else span["rule"])
     path = f"{stem}.{options.format}"
     files = [output.write_trajectory(path, {k: np.asarray(v) for k, v in columns.items()}, meta)]
-    title = f"{problem.name}, {specs.short(spec)}, h = {h:g}"
+    title = plot_title(problem, spec, h, span, solution)
     view = output.choose_view(problem.shape or problem.q0.shape, solution.q, options.plot)
     return files + output.plot_run(stem, solution, problem.H, problem.args, problem.invariants, title, view,
                                    problem.center)

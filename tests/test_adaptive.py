@@ -1,5 +1,7 @@
 """Time spans, error-per-step control, the time transformation, saving at chosen times and events."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -277,6 +279,28 @@ def test_a_sweep_over_tolerances_and_initial_states_equals_integrate():
         assert float(result.energy_error[b]) < [1e-7, 1e-10][b]
 
 
+def test_a_controller_checked_at_construction_passes_jit_vmap_and_grad():
+    """The range check runs where the user builds a PIDController, not where JAX rebuilds it:
+    traced leaves under jit, axis specs of 0 (rtol = atol = 0) and None under vmap, zero
+    cotangents; each run takes its own steps."""
+    run = lambda c, x: gj.integrate(H, Q0.at[0].set(x), P0, method=CG3, h=0.1, t1=1.0, controller=c,
+                                    error_estimate=False)
+    c, x0 = pid(1e-8), Q0[0]
+    eager, jitted = run(c, x0), jax.jit(run)(c, x0)
+    assert int(jitted.stats["num_steps"]) == int(eager.stats["num_steps"]) > 10
+    np.testing.assert_allclose(jitted.q[-1], eager.q[-1], rtol=0, atol=1e-13)
+    tols = jnp.array([1e-5, 1e-9])
+    batch = gj.PIDController(rtol=tols, atol=tols)
+    axes = jax.tree.map(lambda x: 0 if jnp.ndim(x) else None, batch)
+    assert axes.rtol == 0 and axes.pcoeff is None  # an axis spec, not a controller to check
+    steps = jax.vmap(run, in_axes=(axes, None))(batch, x0).stats["num_steps"]
+    assert int(steps[0]) < int(steps[1])
+    grad = jax.grad(lambda x: run(c, x).q[-1, 0])(x0)
+    assert np.isfinite(float(grad)) and float(grad) != 0.0
+    zero = jax.tree.map(jnp.zeros_like, c)  # the shape of a controller's cotangent
+    assert float(zero.rtol) == 0.0 and zero.predictive is True
+
+
 def test_fixed_steps_to_t1_land_on_t1_and_a_sweep_reaches_it_with_every_h():
     """The last element is shortened: every run ends at t1 exactly, at the accuracy of cG(3)
     against the exact orbit (h = 0.1: 2.9e-6; the shortened element only helps). ``integrate``
@@ -466,14 +490,22 @@ def test_derivatives_through_a_controlled_run(controller):
     assert abs(float(grad - fd)) < 1e-5 * abs(float(fd))
 
 
+def rebuilt_pid(**fields):
+    """``pid(1e-6)`` with ``fields`` replaced as JAX rebuilds a node (``tree_unflatten``), past
+    the check at construction: ``integrate`` checks the values again."""
+    controller = pid(1e-6)
+    names = [f.name for f in dataclasses.fields(controller) if not f.metadata.get("static")]
+    return jax.tree.unflatten(jax.tree.structure(controller), [fields.get(n, getattr(controller, n)) for n in names])
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
         (dict(n_steps=10, t1=1.0), "exactly one"),
         (dict(), "exactly one"),
         (dict(n_steps=10, controller=gj.PIDController(1e-6, 1e-6)), "not n_steps"),
-        (dict(t1=1.0, controller=gj.PIDController(0.0, 1e-6)), "rtol"),
-        (dict(t1=1.0, controller=gj.PIDController(1e-6, -1.0)), "atol"),
+        (dict(t1=1.0, controller=rebuilt_pid(rtol=0.0)), r"controller.rtol must be > 0, got 0.0\."),
+        (dict(t1=1.0, controller=rebuilt_pid(atol=-1.0)), r"controller.atol must be > 0, got -1.0\."),
         (dict(t0=1.0, t1=1.0), "greater than t0"),
         (dict(t1=1.0, save_at=[0.5, 0.2]), "sorted"),
         (dict(t1=1.0, save_at=[0.5, 1.5]), r"\[t0, t1\]"),

@@ -1,4 +1,5 @@
-"""Input checks of grid, sweep and ModifiedMidpoint: clear errors naming the argument, before tracing."""
+"""Input checks of grid, sweep, ModifiedMidpoint, the controllers and events: clear errors naming
+the argument, before tracing."""
 
 import jax
 import jax.numpy as jnp
@@ -193,3 +194,69 @@ def test_central_force_check_runs_for_modified_midpoint_only_and_skips_traced_va
     configs = gj.grid(method=gj.ModifiedMidpoint(), h=0.1, state=(Q0, P0))
     with pytest.raises(ValueError, match="ModifiedMidpoint needs"):
         _checks.check_sweep(H_other, configs, 10, None, None, None)
+
+
+BAD_CONTROLLERS = [
+    (dict(rtol=0), ValueError, "PIDController: rtol must be > 0, got 0.0."),
+    (dict(atol=-1e-9), ValueError, "PIDController: atol must be > 0, got -1e-09."),
+    (dict(rtol=float("nan")), ValueError, "PIDController: rtol must be > 0, got nan."),
+    (dict(rtol=np.array([1e-6, 0.0])), ValueError, "PIDController: rtol must be > 0, got 0.0 (entry 1 of 2)."),
+    (dict(dtmin=1.0, dtmax=0.5), ValueError, "PIDController: dtmin must be < dtmax, got dtmin = 1.0 and dtmax = 0.5."),
+    (dict(dtmin=-0.1), ValueError, "PIDController: dtmin must be >= 0, got -0.1."),
+    (dict(dtmax=0.0), ValueError, "PIDController: dtmax must be > 0, got 0.0."),
+    (dict(safety=1.5), ValueError, "PIDController: safety must be in (0, 1], got 1.5."),
+    (dict(factormin=1.0), ValueError, "PIDController: factormin must be in (0, 1), got 1.0."),
+    (dict(factormax=1.0), ValueError, "PIDController: factormax must be > 1, got 1.0."),
+    (dict(failfactor=0.0), ValueError, "PIDController: failfactor must be in (0, 1), got 0.0."),
+    (dict(pcoeff=np.inf), ValueError, "PIDController: pcoeff must be finite, got inf."),
+    (dict(predictive=1), TypeError, "PIDController: predictive must be a bool, got 1."),
+]
+
+
+@pytest.mark.parametrize("kwargs, error, message", BAD_CONTROLLERS, ids=[m[15:45] for _, _, m in BAD_CONTROLLERS])
+def test_a_pid_controller_out_of_range_raises_at_construction(kwargs, error, message):
+    with pytest.raises(error) as caught:
+        gj.PIDController(**{"rtol": 1e-6, "atol": 1e-6, **kwargs})
+    assert str(caught.value) == message
+
+
+def test_a_pid_controller_checks_concrete_values_only_and_replace_checks_too():
+    import dataclasses
+
+    # a traced tolerance is not read (integrate reports what it can through the status)
+    assert float(jax.jit(lambda tol: gj.PIDController(tol, tol).rtol)(0.0)) == 0.0
+    good = gj.PIDController(rtol=jnp.array([1e-6, 1e-9]), atol=1e-9)  # a sweep's tolerances
+    assert good.rtol.shape == (2,)
+    with pytest.raises(ValueError, match=r"PIDController: rtol must be > 0, got 0.0\.$"):
+        dataclasses.replace(good, rtol=0.0)
+
+
+def test_a_time_transform_takes_a_callable_and_no_modified_midpoint():
+    with pytest.raises(TypeError, match="TimeTransform: s must be a callable s\\(q, p\\), got float"):
+        gj.TimeTransform(s=1.0)
+    with pytest.raises(ValueError, match=r"ModifiedMidpoint needs H = \|p\|\^2 / 2m \+ V\(\|q\|\).*K = s\(q, p\) "
+                                         r"\(H \+ p_t\).*use fixed steps or a PIDController"):
+        gj.integrate(H, Q0, P0, method=gj.ModifiedMidpoint(), h=0.1, t1=1.0, controller=gj.TimeTransform())
+
+
+def test_an_event_function_of_a_vector_names_itself_and_the_shape():
+    def section(t, q, p):
+        return q  # should be q[0]
+
+    with pytest.raises(ValueError) as caught:
+        gj.integrate(H, Q0, P0, method=CG1, h=0.1, t1=1.0, events=gj.Event(section))
+    assert str(caught.value) == ("Event.g (section) must return a scalar, got an array of shape (2,) (q0 of shape "
+                                 "(2,)): one number whose sign changes at the event, e.g. q[0] rather than q.")
+    with pytest.raises(ValueError, match=r"Event.g \(<lambda>\) must return a scalar, got tuple"):
+        gj.integrate(H, Q0, P0, method=CG1, h=0.1, t1=1.0, events=gj.Event(lambda t, q, p: (q[0], p[0])))
+
+
+def test_the_time_transform_status_advises_the_default_s_and_a_users_s_apart():
+    message = gj.status_message(gj.Status.TIME_TRANSFORM)
+    default, own = message.split(". ")[1:3]
+    # the default s fails at an equilibrium: there, a density of one's own helps
+    assert default.startswith("The default s (TimeTransform()) fails where Hamilton's field vanishes, at an "
+                              "equilibrium") and "pass a TimeTransform(s=...) of your own there" in default
+    # one's own s failed: it must stay positive and finite, not be replaced by another of one's own
+    assert own.startswith("A TimeTransform(s=...) of your own must stay positive and finite at every state the "
+                          "orbit reaches") and "pass" not in own

@@ -416,11 +416,20 @@ def test_run_to_an_end_time_with_a_tolerance_prints_its_steps(tmp_path, capsys):
     printed = capsys.readouterr().out
     control = next(line for line in printed.splitlines() if line.startswith("control"))
     assert "error per step, tol = 1e-08" in control and "rejected" in control
-    data = np.load(os.path.join(out, "kepler_cG3-gauss3.npz"))
+    # the files say the controller, so that they do not overwrite a fixed-step run's
+    assert sorted(os.listdir(out)) == [f"kepler_cG3-gauss3_pid{suffix}" for suffix in
+                                       (".npz", "_energy.png", "_orbit.png")]
+    data = np.load(os.path.join(out, "kepler_cG3-gauss3_pid.npz"))
+    assert str(data["step_rule"]) == "error per step, tol = 1e-08"
     steps = int(control.split(":")[1].split()[0])
     assert len(data["t"]) == steps + 1 and abs(data["t"][-1] - 6.2832) < 1e-12
     h = np.diff(data["t"])
     assert h.max() / h.min() > 5  # e = 0.6: small steps at perihelion, large at aphelion
+    # steps chosen from the state are not symplectic: the summary does not promise a bounded error
+    hint = printed.strip().splitlines()[-1].split(": ", 2)[2]
+    assert "a symplectic method with fixed steps; steps chosen from the state by error-per-step control break " \
+           "that structure, so the energy error can drift over long runs" in hint
+    assert "oscillates and does not drift" not in hint
 
 
 def test_a_scene_file_may_set_t1_and_tol_and_the_time_transformation_lands_on_it(tmp_path, capsys):
@@ -429,9 +438,16 @@ def test_a_scene_file_may_set_t1_and_tol_and_the_time_transformation_lands_on_it
     out = str(tmp_path / "out")
     assert cli.main(["run", str(scene), "--time-transform", "--no-progress", "--out", out]) == 0
     printed = capsys.readouterr().out
-    assert "time transformation" in printed
-    data = np.load(os.path.join(out, "s_cG3-gauss3.npz"))
+    control = next(line for line in printed.splitlines() if line.startswith("control"))
+    assert control.startswith("control  time transformation (default s), h in tau: ")
+    data = np.load(os.path.join(out, "s_cG3-gauss3_time-transform.npz"))
     assert abs(float(data["t"][-1]) - 1.5) < 1e-13
+    steps = np.diff(data["t"])
+    assert control.endswith(f"; steps in t from {steps.min():.3g} to {steps.max():.3g}")
+    # the time transformation keeps Gauss collocation symplectic: this promise stays
+    assert printed.strip().endswith("Gauss collocation, a symplectic method, and the time transformation keeps it "
+                                    "symplectic (a constant step in the fictive time tau on the extended phase space): "
+                                    "the energy error oscillates and does not drift.")
     scene.write_text(USER_SCENE + "t1 = -1.0\n")
     assert cli.main(["run", str(scene), "--out", out + "2"]) == 1
     assert "t1 must be finite and > 0" in capsys.readouterr().err
@@ -455,3 +471,73 @@ def test_sweep_to_an_end_time_reaches_it_with_every_step_size(tmp_path, capsys):
     column = rows[0].index("final error")
     finals = [float(row[column]) for row in rows[1:]]
     assert finals[0] > finals[1] > finals[2]
+
+
+def test_the_file_names_and_the_plot_title_say_how_the_steps_were_chosen():
+    """A controlled run writes files of its own (a fixed-step run's are not overwritten), and
+    the title gives the time transformation's h as its step in tau, with the steps in t."""
+    problem, spec = specs.load_scene("kepler"), specs.complete(specs.parse_spec("cg"))
+    pid = dict(name="pid", tol=1e-8)
+    tt, fixed_to_t1 = dict(name="time-transform", tol=None), dict(name=None, tol=None)
+    assert cli.run_stem(problem, spec, None) == cli.run_stem(problem, spec, fixed_to_t1) == "kepler_cG3-gauss3"
+    assert cli.run_stem(problem, spec, pid) == "kepler_cG3-gauss3_pid"
+    assert cli.run_stem(problem, spec, tt) == "kepler_cG3-gauss3_time-transform"
+    nodes = SimpleNamespace(t=np.array([0.0, 0.05, 0.3, 0.32]), stats={"num_steps": 3})
+    between = SimpleNamespace(t=np.linspace(0.0, 0.32, 11), stats={"num_steps": 3})  # save_at: steps unknown
+    title = lambda span, solution: cli.plot_title(problem, spec, 0.05, span, solution)
+    assert title(None, nodes) == "kepler, cG(3) Gauss-Legendre 3, h = 0.05"
+    assert title(tt, nodes) == "kepler, cG(3) Gauss-Legendre 3\nh = 0.05 in tau, steps in t from 0.02 to 0.25"
+    assert title(tt, between) == "kepler, cG(3) Gauss-Legendre 3\nh = 0.05 in tau"
+    assert title(pid, nodes) == "kepler, cG(3) Gauss-Legendre 3\ntol = 1e-08, h from 0.02 to 0.25"
+
+
+def test_the_closing_line_under_a_controller_promises_what_the_step_rule_keeps():
+    eps = np.finfo(np.float64).eps
+    t = np.linspace(0.0, 1.0, 101)
+    gauss, vi = (specs.complete(specs.parse_spec(text)) for text in ("cg2:gauss2", "vi2"))
+    line = lambda spec, change, controller, tol=None: summary.closing_line("e.png", spec, change, eps, True, 0.5,
+                                                                          controller, tol)
+    # error-per-step control breaks symplecticity: a drift is what it may do
+    assert line(gauss, 1e-6 * t, "pid", 1e-6).startswith(
+        "Look at e.png: the energy error grows from 2.5e-07 in the first quarter of the run to 1.0e-06 in the last: "
+        "it drifts. As expected: cG(k) with k Gauss points is Gauss collocation, a symplectic method with fixed "
+        "steps; steps chosen from the state by error-per-step control break that structure")
+    assert "As expected: a variational integrator is symplectic with fixed steps; " in line(vi, 1e-6 * t, "pid", 1e-6)
+    # the time transformation keeps it: a drift is not
+    kept = line(gauss, 1e-6 * t, "time-transform")
+    assert "it drifts. Not what the method usually does: cG(k) with k Gauss points is Gauss collocation, a " \
+           "symplectic method, and the time transformation keeps it symplectic" in kept
+    assert "it drifts. Not what the method usually does: " in line(gauss, 1e-6 * t, None)
+    # a large error: under error-per-step control the tolerance is what to change, in tau the step
+    assert line(gauss, 1.39 * t, "pid", 1e-6).endswith(
+        "it drifts. The tolerance is too loose for this scene: try a smaller --tol than 1e-06.")
+    assert line(gauss, 1.39 * t, "time-transform").endswith(
+        "try a smaller --step-size than 0.5 (the step in the fictive time tau).")
+
+
+def test_a_failed_controlled_run_says_what_to_change_in_the_commands_terms():
+    tt, max_steps = int(gj.Status.TIME_TRANSFORM), int(gj.Status.MAX_STEPS)
+    message = summary.failure_message(tt, 6, False, 0.05, "time-transform", None, 1000)
+    assert message == (
+        "the solve failed (status 6, TIME_TRANSFORM): The time transformation's step density s(q, p) was not "
+        "positive and finite at a state of the run: the command's s, the default (|F(z0)| / |F(z)|)^(3/4) with F "
+        "Hamilton's field, fails where F vanishes, at an equilibrium (at the start or on the way). Try --tol or "
+        "fixed steps (--t-end alone): the command's time transformation has only the default s.")
+    assert summary.failure_message(max_steps, 6, False, 0.05, "pid", 1e-8, 1000).endswith(
+        "The run reached --max-steps (accepted and rejected steps together) before its end time. Try a larger "
+        "--max-steps than 1000 or a looser --tol than 1e-08.")
+    assert summary.failure_message(max_steps, 6, False, 0.05, "time-transform", None, 1000).endswith(
+        "Try a larger --max-steps than 1000 or a larger --step-size than 0.05.")
+    dtmin = summary.failure_message(int(gj.Status.DTMIN), 6, False, 0.05, "pid", 1e-8, 1000)
+    assert dtmin.endswith("Try a looser --tol than 1e-08, or fixed steps.") and "--step-size" not in dtmin
+
+
+def test_a_time_transformed_run_from_an_equilibrium_exits_3_with_the_commands_advice(tmp_path, capsys):
+    scene = write(tmp_path, "rest.py", "H = lambda q, p: 0.5 * (q @ q + p @ p)\nq0, p0 = [0.0], [0.0]\n")
+    assert cli.main(["run", scene, "--time-transform", "--t-end", "1", "--no-progress",
+                     "--out", str(tmp_path / "out")]) == cli.EXIT_FAILED_SOLVE
+    err = capsys.readouterr().err
+    assert err.startswith("galerkin-jax: error: the solve failed (status 6, TIME_TRANSFORM): ")
+    assert err.rstrip().endswith("Try --tol or fixed steps (--t-end alone): the command's time transformation has "
+                                 "only the default s.")
+    assert "TimeTransform(s=" not in err and "--step-size" not in err
