@@ -63,6 +63,8 @@ def blocks(path):
             body = [line[indent:] if line[:indent].isspace() else line for line in lines[i + 1 : end]]
             before = next((line for line in reversed(lines[:i]) if line.strip()), "")
             skip = SKIP.match(before)
+            if skip is not None and not skip["reason"]:
+                raise ValueError(f"{path}:{i + 1}: a docs-test skip needs its reason beside it")
             # the code on its own lines of the file, so that a traceback names the page's line
             source = "\n" * (i + 1) + textwrap.dedent("\n".join(body))
             page = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
@@ -185,3 +187,14 @@ def test_the_collector_finds_the_blocks_a_reader_sees(tmp_path):
     assert [b.source.strip() for b in found] == ["x = 1", "y = x + 1", "z = 3"]
     assert found[1].source.count("\n") == 13  # the code stands on its own line of the page
     assert sum(len(found) for found in BLOCKS.values()) >= 10
+    page.write_text("<!-- docs-test: skip -->\n```python\nx = 1\n```\n")
+    with pytest.raises(ValueError, match="needs its reason"):
+        blocks(page)
+
+
+def test_a_page_after_another_starts_from_its_names():
+    sweeps = ROOT / "docs" / "sweeps.md"
+    assert after(sweeps) == ROOT / "docs" / "getting-started.md"
+    names = run(sweeps, 0).namespace
+    assert {"H", "q0", "p0", "method", "result"} <= set(names)
+    assert "result" not in run(after(sweeps), 0).namespace  # the earlier page keeps its own names
