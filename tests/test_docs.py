@@ -12,16 +12,22 @@ Two HTML comments, invisible on the rendered page, steer a page:
 * ``<!-- docs-test: after PAGE -->`` anywhere on a page starts its namespace from PAGE's names
   after all of PAGE's blocks ran, where the text says the examples use another page's names.
 
-A small collector rather than a plugin: the plugins for Markdown run each block on its own
-or need a marker in every fence, and collect only files under ``testpaths``.
+The blocks run with JAX's default rank promotion, as a reader's session has it (conftest.py
+raises on it for the library's own tests).
+
+A small collector rather than a plugin: pytest-markdown-docs and pytest-codeblocks run each
+block on its own unless every later fence is marked as a continuation, and they, like Sybil,
+collect only files that pytest walks, which ``testpaths`` limits to tests/.
 """
 
 import dataclasses
+import linecache
 import pathlib
 import re
 import textwrap
 from typing import Optional
 
+import jax
 import numpy as np
 import pytest
 
@@ -83,6 +89,20 @@ def after(path):
 BLOCKS = {path: blocks(path) for path in PAGES}
 
 
+def _show_python_lines(path):
+    """Tracebacks quote a page's line from its Python blocks alone (in place, the rest blank):
+    pytest parses the quoted file as Python to find the statement around a line."""
+    lines = [""] * len(path.read_text().splitlines())
+    for block in BLOCKS[path]:
+        for number, line in enumerate(block.source.split("\n")):
+            lines[number] = line if line else lines[number]
+    linecache.cache[str(path)] = (None, None, [line + "\n" for line in lines], str(path))
+
+
+for _path in PAGES:
+    _show_python_lines(_path)
+
+
 class PageRun:
     """A page's namespace and the outcome of each of its blocks that ran."""
 
@@ -109,7 +129,8 @@ class PageRun:
                 self.outcomes[index] = ("skip", block.skip)
             else:
                 try:
-                    exec(compile(block.source, str(self.path), "exec"), self.namespace)
+                    with jax.numpy_rank_promotion("allow"):
+                        exec(compile(block.source, str(self.path), "exec"), self.namespace)
                     failed_runs(self.namespace)
                     self.outcomes[index] = ("pass", None)
                 except Exception as error:  # noqa: BLE001 - reported by the block's own test
