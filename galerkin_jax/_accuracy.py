@@ -7,7 +7,7 @@ import numpy as np
 from ._integrate import integrate
 
 
-def suggest_step_size(H, q0, p0, *, method, tolerance, h, span, args=None, safety=0.8, max_halvings=8):
+def suggest_step_size(H, q0, p0, *, method, tolerance, h, span, args=None, safety=0.8, max_halvings=8) -> tuple[float, dict]:
     """The largest h whose estimated local error (``Solution.error_estimate``) meets ``tolerance``.
 
     Two pilot runs over ``span`` (from t = 0, with steps ``h`` and ``h / 2``) give the estimate

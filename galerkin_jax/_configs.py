@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._method import check_method, describe_method
+from ._method import AbstractMethod, check_method, describe_method
 from ._state import check_state, state_dtype
 from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
@@ -20,9 +20,10 @@ class Configs:
 
     Attributes:
         method: a method pytree with stacked quadrature arrays (see ``stack_methods``).
-        q0, p0: shape ``(B, d)``, or ``(B,) + shape`` for states of any shape, or pytrees of
+        q0: shape ``(B, d)``, or ``(B,) + shape`` for states of any shape, or pytrees of
             arrays whose leaves lead with B (``sweep`` flattens them; H sees each member's
             state in its shape).
+        p0: of q0's shape (structure).
         h: shape ``(B,)``.
         args: ``None`` or a pytree whose leaves have a leading axis B.
     """
@@ -38,7 +39,7 @@ class Configs:
         return self.h.shape[0]
 
 
-def pad_rule(rule, n):
+def pad_rule(rule, n) -> QuadratureRule:
     """The rule with zero-weight points at 1/2 appended up to ``n`` points; integrates the same.
 
     Args:
@@ -80,7 +81,7 @@ def _check_methods(methods, name):
             )
 
 
-def stack_methods(methods):
+def stack_methods(methods) -> AbstractMethod:
     """Stack methods of one kind and degree along a new leading axis, padding their rules
     to a common point count with ``pad_rule`` so that rules of any size share one batch.
 
@@ -219,7 +220,7 @@ def _args_axis(args):
     return args
 
 
-def grid(*, method, h, state, args=None):
+def grid(*, method, h, state, args=None) -> Configs:
     """The cartesian product of the given axes as ``Configs`` (order: method, h, state, args).
 
     Each axis takes a list of values or a single value, which is one point of its axis.
@@ -238,7 +239,7 @@ def grid(*, method, h, state, args=None):
         ``Configs`` with B = the product of the axes' lengths, q0, p0 and h in the states' dtype.
     Raises:
         ValueError or TypeError naming the argument: an empty axis, a non-positive h, methods of
-        different kinds or degrees, states of different dimensions or with len(q0) != len(p0).
+            different kinds or degrees, states of different dimensions or with len(q0) != len(p0).
     """
     methods, hs, states = _method_axis(method), _step_axis(h), _state_axis(state)
     args_axis = _args_axis(args)

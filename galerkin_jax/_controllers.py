@@ -46,14 +46,18 @@ class PIDController:
     over tolerances.
 
     Args:
-        rtol, atol: relative and absolute tolerance on the embedded estimate, > 0. The true local
-            error of a superconvergent method (cG(k): order 2k + 1) lies below it.
-        pcoeff, icoeff, dcoeff: PID coefficients (default: I control, ``icoeff = 1``).
+        rtol: relative tolerance on the embedded estimate, > 0. The true local error of a
+            superconvergent method (cG(k): order 2k + 1) lies below it.
+        atol: absolute tolerance on the embedded estimate, > 0.
+        pcoeff: proportional coefficient (the default is I control).
+        icoeff: integral coefficient.
+        dcoeff: derivative coefficient.
         dtmin: smallest step; a step rejected at dtmin ends the run with status DTMIN (default 0:
             the run ends where h falls to the round-off of t).
         dtmax: largest step (default inf).
         safety: factor < 1 on the predicted optimal h.
-        factormin, factormax: bounds of the factor by which h changes per step.
+        factormin: least factor by which h changes per step.
+        factormax: largest factor by which h changes per step.
         failfactor: the factor on h after a failed solve (at least ``factormin``): 0.5 halves h,
             as Radau5 does after a Newton failure (Hairer and Wanner, Sec. IV.8); diffrax cuts by
             ``factormin``. A failed solve says the step was too long for the solve, not by how
@@ -237,8 +241,15 @@ class Event:
 
 @pytree_dataclass
 class Events:
-    """The events of a run: ``t`` (capacity,), ``q``, ``p`` (capacity, ...) with NaN in unused
-    rows, and ``count``, the number of events found (may exceed the capacity)."""
+    """The events of a run (``Solution.events``), in the order found.
+
+    Attributes:
+        t: ``(capacity,)`` event times, NaN in unused rows.
+        q: ``(capacity,) + shape`` the positions at the events, NaN in unused rows.
+        p: the momenta, likewise.
+        count: the number of events found (may exceed the capacity: the later ones are counted,
+            not stored).
+    """
 
     t: jax.Array
     q: jax.Array

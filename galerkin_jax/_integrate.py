@@ -29,9 +29,10 @@ class Solution:
         t: shape ``(m,)``: the save times (``save_at``); for fixed steps every ``save_every``-th
             node from ``t0`` (``m = n_steps // save_every + 1``); for a controller's run without
             ``save_at``, ``[t0, t_end]``.
-        q, p: the states at ``t``, each of shape ``(m,) + shape`` for states of that shape
+        q: the positions at ``t``, of shape ``(m,) + shape`` for states of that shape
             (``(m, d)`` for 1-D states; a pytree state: its leaves with the leading axis m).
             After the first failure the states are NaN.
+        p: the momenta at ``t``, likewise.
         status: int32 ``Status`` code, 0 when every implicit solve converged. Status 0 promises
             converged solves, not accurate steps: read ``error_estimate`` for that.
         stats: ``num_newton_iterations`` (total), ``max_newton_iterations`` (largest count in
@@ -60,7 +61,7 @@ class Solution:
     events: object = None
     layout: object = dataclasses.field(default=None, metadata=dict(static=True))
 
-    def evaluate(self, t):
+    def evaluate(self, t) -> tuple:
         """``(q, p)`` at the times ``t`` (scalar or 1-D) in ``[t0, t1]``: the states at the nodes,
         each element's polynomial in between (one run, ``dense=True``). A time outside
         [t0, t1] raises a ValueError where t is concrete and gives NaN under jit; every time
@@ -105,18 +106,21 @@ def prepare(H, q0, p0, method, h, args):
 
 @_shape.on_step
 def step(H, q, p, *, method, h, args=None, max_newton_iterations=None, krylov=None, solver=None, throw=False,
-         return_status=False):
+         return_status=False) -> tuple:
     """One time element: ``(q, p) -> (q1, p1)``.
 
     A failed solve returns NaN states (never a plausible one).
 
     Args:
         H: ``H(q, p)`` or ``H(q, p, args)`` returning a scalar (``L(q, qdot)`` for LagrangianVI).
-        q, p: arrays of one shape (``(d,)``, ``(N, 3)``, ...) or pytrees of arrays of one
-            structure; H receives them so.
+        q: array of any shape (``(d,)``, ``(N, 3)``, ...) or pytree of arrays; H receives it so.
+        p: of q's shape (structure).
         method: e.g. ``CG(k, rule)``, ``DG(k, rule)``.
         h: step size, scalar > 0.
-        max_newton_iterations, krylov, solver, throw: as in ``integrate``.
+        max_newton_iterations: as in ``integrate``.
+        krylov: as in ``integrate``.
+        solver: as in ``integrate``.
+        throw: as in ``integrate``.
         return_status: also return the int32 ``Status`` code (works under jit).
     Returns:
         ``(q1, p1)``, in the shape (structure) of q and p; ``(q1, p1, status)`` with ``return_status``.
@@ -161,7 +165,7 @@ def integrate(
     dense=False,
     progress=False,
     error_estimate=True,
-):
+) -> Solution:
     """Integrate Hamilton's equations from ``t0`` over ``n_steps`` elements of size ``h``, or to ``t1``.
 
     Fixed steps are chained by a nested ``lax.scan`` (outer over saves, inner over
@@ -172,15 +176,16 @@ def integrate(
 
     Args:
         H: ``H(q, p)`` or ``H(q, p, args)`` (``L(q, qdot)`` for LagrangianVI).
-        q0, p0: arrays of one shape (``(d,)``, ``(N, 3)``, ...) or pytrees of arrays of one
-            structure (p0 is the initial momentum for LagrangianVI too). H, the event's g and
-            the time transformation's s receive states in this shape; the solver works on the
-            flattened vectors (``_shape``), of length d = the number of elements of q0.
+        q0: array of any shape (``(d,)``, ``(N, 3)``, ...) or pytree of arrays. H, the event's g
+            and the time transformation's s receive states in this shape; the solver works on
+            the flattened vectors (``_shape``), of length d = the number of elements of q0.
+        p0: of q0's shape (structure); the initial momentum for LagrangianVI too.
         method: a method object (CG, DG, GalerkinVI, ...).
         h: step size > 0 (a controller's first step; a time transformation's step in tau); may
             be traced (vmap over step sizes).
         n_steps: number of elements, a multiple of ``save_every``. Static. Give it or ``t1``.
-        t0, t1: start and end time; t1 > t0.
+        t0: start time.
+        t1: end time, > t0.
         controller: None (fixed steps), ``PIDController`` or ``TimeTransform``; needs ``t1``.
         max_steps: static cap on a controller's attempts (accepted and rejected; default
             4096); with fixed steps to a traced ``t1`` or ``h``, the elements the scan reserves.
@@ -345,7 +350,7 @@ def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, even
 
 
 @_shape.on_amplification
-def amplification_matrix(H, q, p, *, method, h, args=None, solver=None):
+def amplification_matrix(H, q, p, *, method, h, args=None, solver=None) -> jax.Array:
     """A = d z_1 / d z_0 of one element, by ``jax.jacfwd`` through the implicit solve [GBS, eq. (48)].
 
     For a quadratic H this is the amplification matrix of the two-level scheme

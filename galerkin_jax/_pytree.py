@@ -14,7 +14,7 @@ import functools
 import jax
 
 
-def pytree_dataclass(cls):
+def pytree_dataclass(cls) -> type:
     """``cls`` as a frozen dataclass and a pytree node.
 
     Fields with ``metadata={"static": True}`` are auxiliary data (hashed, compared, part of

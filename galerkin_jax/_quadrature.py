@@ -118,13 +118,13 @@ def _from_reference(x, w):
     return QuadratureRule(points=(np.asarray(x) + 1.0) / 2.0, weights=np.asarray(w) / 2.0)
 
 
-def gauss_legendre(n):
+def gauss_legendre(n) -> QuadratureRule:
     """n-point Gauss-Legendre rule on [0, 1]; exact for polynomials of degree 2n - 1."""
     _check_count(n, 1, "gauss_legendre")
     return _from_reference(*npleg.leggauss(int(n)))
 
 
-def gauss_lobatto(n):
+def gauss_lobatto(n) -> QuadratureRule:
     """n-point Gauss-Lobatto rule on [0, 1] (both end points); exact to degree 2n - 3.
 
     Interior nodes are the roots of P'_{n-1}; the weights are 2 / (n (n - 1) P_{n-1}(x)^2).
@@ -139,7 +139,7 @@ def gauss_lobatto(n):
     return _from_reference(x, w)
 
 
-def gauss_radau(n, *, right=True):
+def gauss_radau(n, *, right=True) -> QuadratureRule:
     """n-point Gauss-Radau rule on [0, 1]; exact to degree 2n - 2.
 
     The right rule contains alpha = 1 (its nodes are those of Radau IIA); the left rule
@@ -159,11 +159,11 @@ def gauss_radau(n, *, right=True):
     return _from_reference(x, w)
 
 
-def midpoint():
+def midpoint() -> QuadratureRule:
     """The one-point rule at alpha = 1/2 (= gauss_legendre(1)) [GBS, Remark 4.8]."""
     return QuadratureRule(points=np.array([0.5]), weights=np.array([1.0]))
 
 
-def trapezoid():
+def trapezoid() -> QuadratureRule:
     """The trapezoidal rule: points 0 and 1, weights 1/2 [GBS, Remark 4.7]."""
     return QuadratureRule(points=np.array([0.0, 1.0]), weights=np.array([0.5, 0.5]))

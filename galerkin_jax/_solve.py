@@ -128,7 +128,7 @@ MESSAGES = {
 }
 
 
-def status_message(status):
+def status_message(status) -> str:
     """The message of a status code (an int or a concrete array)."""
     return MESSAGES[Status(int(status))]
 

@@ -34,10 +34,12 @@ class SweepResult:
             passed; for ``LagrangianVI`` that is L, not an energy: use ``invariants``.
         invariant_errors: name -> max_n max_i |I_n - I_0|_i / max_i |I_0|_i (absolute where I_0 = 0).
         final_error: max |(q_N, p_N) - reference| or None.
-        q, p: the final state, ``(B,) + shape`` (a pytree state: each leaf with the leading axis B).
+        q: the final position, ``(B,) + shape`` (a pytree state: each leaf with the leading axis B).
+        p: the final momentum, likewise.
         status: ``Status`` codes; NaN diagnostics go with a nonzero status.
         error_estimate: the largest estimated local error of each run (``Solution.error_estimate``).
-        num_newton_iterations, max_newton_iterations: total and largest per element.
+        num_newton_iterations: Newton iterations of each run, in total.
+        max_newton_iterations: the largest count of one element.
         batch_newton_iterations: the iterations the batch ran, the sum over elements of the
             largest member count (the same for every member; ``1 - num / batch`` is the share
             of the batch's iterations a member spent waiting for slower members; in a batch of
@@ -45,7 +47,8 @@ class SweepResult:
             at an eighth of the cost).
         num_accepted_stalled: elements accepted other than at round-off
             (``Solution.stats``).
-        num_steps, num_rejected_steps: accepted and rejected steps of each run.
+        num_steps: accepted steps of each run.
+        num_rejected_steps: rejected steps of each run.
         solution: a batched ``Solution`` when ``save_every`` was given, else None; its
             ``stats`` are the Newton counts above.
     """
@@ -198,15 +201,16 @@ def sweep(
     checkpoint=False,
     progress=False,
     error_estimate=True,
-):
+) -> SweepResult:
     """Run every configuration of ``configs`` for ``n_steps`` elements, or to ``t1``, in one compiled call.
 
     Args:
         H: ``H(q, p)`` or ``H(q, p, args)``.
         configs: ``Configs`` with batch size B (e.g. from ``grid``).
         n_steps: elements per configuration. Static. Give it or ``t1``.
-        t0, t1: start and end time: with ``t1`` every configuration reaches t1 (fixed steps:
-            its last element shortened; members of a smaller h take more elements).
+        t0: start time.
+        t1: end time, which every configuration reaches (fixed steps: its last element
+            shortened; members of a smaller h take more elements).
         controller: None, ``PIDController`` or ``TimeTransform`` (as in ``integrate``); the
             fields of a ``PIDController`` may have shape (B,) to sweep tolerances.
         max_steps: a controller's cap on attempts per configuration (default 4096); with fixed
@@ -215,7 +219,9 @@ def sweep(
         reference: ``(q_ref, p_ref)``, each like ``configs.q0`` (``(B,) + shape``), for ``final_error``.
         save_every: store a trajectory with this stride (``SweepResult.solution``); default
             none; fixed steps of ``n_steps`` only.
-        max_newton_iterations, krylov, solver: the implicit solve's options (see ``integrate``). Static.
+        max_newton_iterations: the implicit solve's options, as in ``integrate``. Static.
+        krylov: as in ``integrate``. Static.
+        solver: as in ``integrate``. Static.
         throw: raise ``SolverError`` when a configuration's status is nonzero, naming the
             configurations (outside ``jit`` only, as in ``integrate``).
         devices: shard the batch over these devices (e.g. ``jax.devices()``); results equal

@@ -14,13 +14,13 @@ import optax
 from ._quadrature import QuadratureRule
 
 
-def rule_from_params(params):
+def rule_from_params(params) -> QuadratureRule:
     """QuadratureRule(sigmoid(x), softmax(y)) from ``params = (x, y)``, each shape ``(n_q,)``."""
     x, y = params
     return QuadratureRule(jax.nn.sigmoid(x), jax.nn.softmax(y))
 
 
-def params_from_rule(rule):
+def params_from_rule(rule) -> tuple[jax.Array, jax.Array]:
     """The inverse of ``rule_from_params``; needs points strictly inside (0, 1) and positive weights."""
     points, weights = np.asarray(rule.points, dtype=float), np.asarray(rule.weights, dtype=float)
     if np.any(points <= 0) or np.any(points >= 1) or np.any(weights <= 0):
@@ -29,12 +29,12 @@ def params_from_rule(rule):
     return jnp.asarray(np.log(points / (1 - points))), jnp.asarray(np.log(weights))
 
 
-def asymmetry(rule):
+def asymmetry(rule) -> jax.Array:
     """|sum_l (1 - 2 alpha_l) w_l| [GBS, eq. (61)]: zero for rules symmetric about 1/2."""
     return jnp.abs(jnp.sum((1.0 - 2.0 * rule.points) * rule.weights))
 
 
-def tune_rule(loss, rule, *, optimizer=None, iterations=100):
+def tune_rule(loss, rule, *, optimizer=None, iterations=100) -> tuple[QuadratureRule, np.ndarray]:
     """Minimise ``loss(rule)`` over the rule's points and weights with optax.
 
     Args:

@@ -1,7 +1,9 @@
-"""MkDocs hook: fail the build when a public name has no docstring or the versions disagree.
+"""MkDocs hook: fail the build when a public name has no docstring or no entry in docs/api.md, or
+the versions disagree.
 
 The API reference is generated from the docstrings (mkdocstrings), so a name in
-``galerkin_jax.__all__`` without one would be listed with nothing to say. The package is read
+``galerkin_jax.__all__`` without one would be listed with nothing to say; docs/api.md groups
+the names by hand, so a new name needs its line there. The package is read
 statically (griffe, which mkdocstrings-python already uses): nothing is imported, so the
 check needs neither JAX nor a compiled program. ``galerkin_jax.__version__`` is a constant
 that must equal the version in ``pyproject.toml``, which the changelog names.
@@ -9,6 +11,7 @@ that must equal the version in ``pyproject.toml``, which the changelog names.
 
 import ast
 import pathlib
+import re
 import tomllib
 
 import griffe
@@ -31,6 +34,15 @@ def undocumented(package="galerkin_jax", root=ROOT):
     return missing
 
 
+def unlisted(package="galerkin_jax", root=ROOT):
+    """The names in ``package.__all__`` that docs/api.md, grouped by hand, does not list
+    (``::: package.NAME``)."""
+    module = griffe.load(package, search_paths=[str(root)])
+    page = (root / "docs" / "api.md").read_text()
+    listed = set(re.findall(rf"^::: {re.escape(package)}\.(\w+)\s*$", page, flags=re.MULTILINE))
+    return sorted(str(n) for n in module.exports or () if str(n) not in listed)
+
+
 def versions(root=ROOT):
     """(the version in pyproject.toml, ``galerkin_jax.__version__`` as written)."""
     project = tomllib.loads((root / "pyproject.toml").read_text())["project"]["version"]
@@ -44,6 +56,9 @@ def on_pre_build(config):
     if missing:
         raise PluginError("public names without a docstring (galerkin_jax.__all__): "
                           + ", ".join(missing))
+    missing = unlisted()
+    if missing:
+        raise PluginError("public names that docs/api.md does not list: " + ", ".join(missing))
     project, package = versions()
     if project != package:
         raise PluginError(f"pyproject.toml says version {project!r}, "

@@ -1,0 +1,221 @@
+"""Every fenced ``python`` block of README.md and docs/*.md runs, as a reader would run it.
+
+Each block is one test, named by its page and line (``README.md:34``). The blocks of a page
+run in page order in one namespace, so a block may use the names of an earlier one; a test
+selected alone runs the blocks before it first. Fences of other languages (shell commands,
+output) and indented code are not run.
+
+Two HTML comments, invisible on the rendered page, steer a page:
+
+* ``<!-- docs-test: skip REASON -->`` on the line before a block skips it; the reason is
+  required (a slow block, one that needs a device or the network).
+* ``<!-- docs-test: after PAGE -->`` anywhere on a page starts its namespace from PAGE's names
+  after all of PAGE's blocks ran, where the text says the examples use another page's names.
+
+The blocks run with JAX's default rank promotion, as a reader's session has it (conftest.py
+raises on it for the library's own tests).
+
+A small collector rather than a plugin: pytest-markdown-docs and pytest-codeblocks run each
+block on its own unless every later fence is marked as a continuation, and they, like Sybil,
+collect only files that pytest walks, which ``testpaths`` limits to tests/.
+"""
+
+import dataclasses
+import linecache
+import pathlib
+import re
+import textwrap
+from typing import Optional
+
+import jax
+import numpy as np
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+FENCE = re.compile(r"^(?P<indent> {0,3})(?P<fence>`{3,}|~{3,})\s*(?P<info>[^`]*)$")
+SKIP = re.compile(r"^\s*<!--\s*docs-test:\s*skip\b\s*(?P<reason>.*?)\s*-->\s*$")
+AFTER = re.compile(r"^\s*<!--\s*docs-test:\s*after\s+(?P<page>\S+)\s*-->\s*$", re.MULTILINE)
+
+
+@dataclasses.dataclass(frozen=True)
+class Block:
+    page: str  # relative to the repository root
+    line: int  # of the opening fence, counted from 1
+    source: str
+    skip: Optional[str]  # the reason, or None
+
+    @property
+    def id(self):
+        return f"{self.page}:{self.line}"
+
+
+def blocks(path):
+    """The ``python`` blocks of the Markdown file ``path``, in page order."""
+    lines = path.read_text().splitlines()
+    found, i = [], 0
+    while i < len(lines):
+        opening = FENCE.match(lines[i])
+        if opening is None:
+            i += 1
+            continue
+        fence, indent = opening["fence"], len(opening["indent"])
+        end = i + 1
+        while end < len(lines) and not re.fullmatch(rf" {{0,3}}{fence[0]}{{{len(fence)},}}\s*", lines[end]):
+            end += 1
+        language = opening["info"].split()[0] if opening["info"].split() else ""
+        if language == "python":
+            body = [line[indent:] if line[:indent].isspace() else line for line in lines[i + 1 : end]]
+            before = next((line for line in reversed(lines[:i]) if line.strip()), "")
+            skip = SKIP.match(before)
+            if skip is not None and not skip["reason"]:
+                raise ValueError(f"{path}:{i + 1}: a docs-test skip needs its reason beside it")
+            # the code on its own lines of the file, so that a traceback names the page's line
+            source = "\n" * (i + 1) + textwrap.dedent("\n".join(body))
+            page = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
+            found.append(Block(str(page), i + 1, source,
+                               None if skip is None else skip["reason"]))
+        i = end + 1
+    return found
+
+
+def after(path):
+    """The page whose names this page's examples use, or None."""
+    match = AFTER.search(path.read_text())
+    return None if match is None else path.parent / match["page"]
+
+
+BLOCKS = {path: blocks(path) for path in PAGES}
+
+
+def _show_python_lines(path):
+    """Tracebacks quote a page's line from its Python blocks alone (in place, the rest blank):
+    pytest parses the quoted file as Python to find the statement around a line."""
+    lines = [""] * len(path.read_text().splitlines())
+    for block in BLOCKS[path]:
+        for number, line in enumerate(block.source.split("\n")):
+            lines[number] = line if line else lines[number]
+    linecache.cache[str(path)] = (None, None, [line + "\n" for line in lines], str(path))
+
+
+for _path in PAGES:
+    _show_python_lines(_path)
+
+
+class PageRun:
+    """A page's namespace and the outcome of each of its blocks that ran."""
+
+    def __init__(self, path):
+        self.path = path
+        self.outcomes = {}  # block index -> ("pass" | "skip" | "fail", reason or exception)
+        self.failed = None  # the id of the first block that failed
+        first = after(path)
+        if first is None:
+            self.namespace = {"__name__": "__main__"}
+        else:
+            assert first.resolve() in BLOCKS, f"{path.name}: docs-test: after {first.name}, not a page"
+            prelude = run(first.resolve(), len(BLOCKS[first.resolve()]) - 1)
+            self.namespace = dict(prelude.namespace)
+            self.failed = prelude.failed
+
+    def run(self, upto):
+        for index, block in enumerate(BLOCKS[self.path][: upto + 1]):
+            if index in self.outcomes:
+                continue
+            if self.failed is not None:
+                self.outcomes[index] = ("skip", f"{self.failed}, which runs before it, failed")
+            elif block.skip is not None:
+                self.outcomes[index] = ("skip", block.skip)
+            else:
+                try:
+                    with jax.numpy_rank_promotion("allow"):
+                        exec(compile(block.source, str(self.path), "exec"), self.namespace)
+                    failed_runs(self.namespace)
+                    self.outcomes[index] = ("pass", None)
+                except Exception as error:  # noqa: BLE001 - reported by the block's own test
+                    self.outcomes[index] = ("fail", error)
+                    self.failed = block.id
+        return self
+
+
+def failed_runs(namespace):
+    """Raise where a ``Solution`` or ``SweepResult`` of the namespace has a status other than
+    SUCCESS: an example whose run fails would teach from NaNs."""
+    import galerkin_jax as gj
+
+    for name, value in namespace.items():
+        if isinstance(value, (gj.Solution, gj.SweepResult)):
+            status = np.asarray(value.status)
+            assert np.all(status == gj.Status.SUCCESS), f"{name}.status is {status}, not SUCCESS"
+
+
+RUNS = {}
+
+
+def run(path, upto):
+    """Run the blocks of ``path`` up to index ``upto`` (those not yet run) in its namespace."""
+    if path not in RUNS:
+        RUNS[path] = PageRun(path)
+    return RUNS[path].run(upto)
+
+
+CASES = [(path, index) for path in PAGES for index in range(len(BLOCKS[path]))]
+
+
+@pytest.mark.parametrize(("path", "index"), CASES, ids=[BLOCKS[p][i].id for p, i in CASES])
+def test_block_runs(path, index):
+    kind, detail = run(path, index).outcomes[index]
+    if kind == "skip":
+        pytest.skip(detail)
+    if kind == "fail":
+        raise detail
+
+
+def test_the_collector_finds_the_blocks_a_reader_sees(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text(textwrap.dedent("""\
+        Text.
+
+        ```python
+        x = 1
+        ```
+
+        ```
+        not python
+        ```
+
+        <!-- docs-test: skip needs a GPU -->
+
+        ```python
+        y = x + 1
+        ```
+
+        - a list item:
+
+          ```python
+          z = 3
+          ```
+
+        ````markdown
+        ```python
+        inside = "a fence of another language"
+        ```
+        ````
+        """))
+    found = blocks(page)
+    assert [(b.line, b.skip) for b in found] == [(3, None), (13, "needs a GPU"), (19, None)]
+    assert [b.source.strip() for b in found] == ["x = 1", "y = x + 1", "z = 3"]
+    assert found[1].source.count("\n") == 13  # the code stands on its own line of the page
+    assert sum(len(found) for found in BLOCKS.values()) >= 10
+    page.write_text("<!-- docs-test: skip -->\n```python\nx = 1\n```\n")
+    with pytest.raises(ValueError, match="needs its reason"):
+        blocks(page)
+
+
+def test_a_page_after_another_starts_from_its_names():
+    sweeps = ROOT / "docs" / "sweeps.md"
+    assert after(sweeps) == ROOT / "docs" / "getting-started.md"
+    names = run(sweeps, 0).namespace
+    assert {"H", "q0", "p0", "method", "result"} <= set(names)
+    assert "result" not in run(after(sweeps), 0).namespace  # the earlier page keeps its own names
