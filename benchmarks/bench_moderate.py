@@ -33,8 +33,10 @@ fixed steps: ``integrate(n_steps=n)``, its own compilation, for the k within 1.5
 in the search) and timed as the best of several calls, twice, minutes apart; compile time apart.
 
 Writes results/moderate.json (every run) and results/moderate.md (the tables, also printed);
-``--quick`` (short spans, small systems, a few solvers) and ``--only`` add a suffix to these
-names unless ``--name`` is given.
+``--quick`` (short spans, small systems, a few solvers; it also counts the calls of H per
+residual by a callback, ``count_calls``) and ``--only`` add a suffix to these names unless
+``--name`` is given. ``--gradients`` only measures one gradient of each system's H, alone and
+vmapped over k states (``gradient_costs``, results/moderate_gradients.json).
 """
 
 import os
@@ -712,6 +714,34 @@ def cell(kind, e):
             f"({knob_text(kind, e)}{its}, {1e6 * e['run_s'] / e['evaluations']:.2f} us/eval)")
 
 
+# ---------------------------------------------------------------- the price of one gradient
+
+
+def gradient_costs(system, points=(3, 4, 6), calls=200):
+    """Microseconds per gradient at one state: of H (both halves, the diffrax field's cost) and
+    of dH/dq alone (a splitting's force, the sweep's q half), and dH/dq vmapped over k states
+    (a cG(k) residual's q half), per state. Each is ``calls`` chained calls in one compiled
+    loop, best of 5."""
+    q0, p0 = jnp.asarray(system.q0), jnp.asarray(system.p0)
+    grad_both, grad_q = jax.grad(system.H, argnums=(0, 1)), jax.grad(system.H, argnums=0)
+
+    def cost(step, q, p, states=1):
+        loop = lambda q, p: jax.lax.fori_loop(0, calls, lambda _, c: step(*c), (q, p))
+        _, call = compiled(loop, q, p)
+        return 1e6 * best_time(call, q, p, repeat=5) / calls / states
+
+    def both(q, p):
+        dq, dp = grad_both(q, p)
+        return q + 1e-16 * dq, p + 1e-16 * dp
+
+    row = {"dH": cost(both, q0, p0), "dH/dq": cost(lambda q, p: (q + 1e-16 * grad_q(q, p), p), q0, p0)}
+    for k in points:
+        Q, P = jnp.stack([q0] * k), jnp.stack([p0] * k)
+        row[f"dH/dq at {k} states, per state"] = cost(lambda q, p: (q + 1e-16 * jax.vmap(grad_q)(q, p), p), Q, P, k)
+    print(f"  {system.name}: " + ", ".join(f"{key} {value:.2f} us" for key, value in row.items()), flush=True)
+    return row
+
+
 # ---------------------------------------------------------------- main
 
 
@@ -729,6 +759,8 @@ def main():
     parser.add_argument("--only", nargs="+", metavar="SYSTEM", help="run only these systems (names as in the table)")
     parser.add_argument("--cap", type=float, default=None, help="the longest predicted run that is run (s; "
                         "default 3, --quick 0.5)")
+    parser.add_argument("--gradients", action="store_true", help="only the price of one gradient per system "
+                        "(gradient_costs; writes moderate_gradients.json)")
     parser.add_argument("--name", help="output name (default moderate, with _quick and the systems run when not all)")
     options = parser.parse_args()
     available = system_list(options.quick)
@@ -738,8 +770,11 @@ def main():
         parser.error(f"unknown systems {unknown}; choose from {list(available)}")
     cap_s = options.cap or (0.5 if options.quick else 3.0)
     suffix = ("_quick" if options.quick else "") + ("" if chosen == list(available) else "_" + "_".join(chosen))
-    name = options.name or "moderate" + suffix
+    name = options.name or "moderate" + ("_gradients" if options.gradients else "") + suffix
     before, start = machine(), time.perf_counter()
+    if options.gradients:
+        write(name, {"machine_before": before, "gradients_us": {n: gradient_costs(available[n]()) for n in chosen}})
+        return
     solvers = solver_list(options.quick)
     results, all_probes = {}, {}
     repeat, budget_s = (1, 0.5) if options.quick else (3, 3.0)
