@@ -1,0 +1,808 @@
+"""Untuned moderate systems (issue 37, item 1): galerkin_jax against diffrax and the integrators
+a user of each field would write, at a largest relative energy error of 1e-6, 1e-8 and 1e-10.
+
+    python benchmarks/bench_moderate.py [--quick] [--only LJ13 LJ55 Morse13 Morse55 Plummer32 Chain10]
+
+The systems (``_moderate.py``, where each is described with its start and seed): Lennard-Jones
+and Morse (rho = 6) clusters of 13 and 55 atoms from their relaxed Mackay icosahedra with
+Maxwell-Boltzmann velocities at T* = 0.3; a softened Plummer sphere of 32 bodies in virial
+equilibrium; a planar 10-link pendulum (non-separable).
+
+The accuracy of a run is max |H(z_j) - H(z_0)| / |H(z_0)| over the states z_j at t = j T / 10,
+j = 1..10, the same for every solver: every run is cut into ten segments whose ends its steps
+land on (fixed steps: a tenth of them each; controlled runs: a run to T / 10 per segment, the
+next one's first step the mean step of the last, the first's 1e-3 T / 10).
+
+The solvers: galerkin_jax cG(k) + Gauss k (k = 3, 4, 6) at fixed steps and cG(4), cG(6) with a
+PIDController (rtol = atol); diffrax Tsit5 and Dopri8, fixed steps and PID (rtol = atol);
+velocity Verlet and Yoshida's fourth-order triple jump of it (separable systems), the implicit
+midpoint rule (fixed-point iteration to round-off) and its triple jump (the chain, where no
+explicit symplectic splitting applies), written here in plain JAX (``lax.fori_loop``). No
+TimeTransform: the softened Plummer sphere has no close encounters to follow, and with its
+default s (second derivatives of H in the solve) a first try compiled in 58 s and took 16 s
+for 15 steps at h_tau = 1 (error 5e-2).
+
+For each solver and accuracy the cheapest run that meets it: the knob (steps per segment or
+the tolerance) on a grid of ratio 2^(1/4) (steps) or 10^(1/4) (tolerances, at most 1e-2),
+searched from a start (``Solver.start``) by predictions from the error's measured slope, down
+to the knob below the first that meets it. One compilation per solver and system serves the
+search (the knob traced; galerkin_jax's fixed steps through a stand-in, ``cg_fixed_search``);
+a knob whose run is predicted to take more than ``--cap`` seconds is not run (recorded as not
+reached, with the prediction). Each cheapest run is then compiled ahead of time (galerkin_jax's
+fixed steps: ``integrate(n_steps=n)``, its own compilation, for the k within 1.5x of the best k
+in the search) and timed as the best of several calls, twice, minutes apart; compile time apart.
+
+Writes results/moderate.json (every run) and results/moderate.md (the tables, also printed);
+``--quick`` (short spans, small systems, a few solvers; it also counts the calls of H per
+residual by a callback, ``count_calls``) and ``--only`` add a suffix to these names unless
+``--name`` is given. ``--gradients`` only measures one gradient of each system's H, alone and
+vmapped over k states (``gradient_costs``, results/moderate_gradients.json).
+"""
+
+import os
+
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
+    os.environ[_var] = "1"  # as bench_peers: one BLAS thread for everyone
+
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import math  # noqa: E402
+import pathlib  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from typing import Callable  # noqa: E402
+
+import diffrax  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+
+import _moderate as systems  # noqa: E402
+import _peers as peers  # noqa: E402
+import galerkin_jax as gj  # noqa: E402
+from _common import RESULTS, best_time, compiled, machine, write  # noqa: E402
+
+SAVES = 10  # the energy is measured at t = j T / SAVES, j = 0..SAVES
+LEVELS = (1e-6, 1e-8, 1e-10)
+MAX_STEPS = 200_000  # a controlled segment's attempts
+
+
+# ---------------------------------------------------------------- the systems
+
+
+def system_list(quick):
+    """The systems of a full run (name -> factory), or of ``--quick``: smaller, shorter."""
+    if quick:
+        return {
+            "LJ13": lambda: systems.lennard_jones(13, T=5.0),
+            "Morse13": lambda: systems.morse(13, T=5.0),
+            "Plummer16": lambda: systems.plummer(16, T=2.0),
+            "Chain5": lambda: systems.pendulum_chain(5, T=5.0),
+        }
+    return {
+        "LJ13": lambda: systems.lennard_jones(13, T=50.0),
+        "LJ55": lambda: systems.lennard_jones(55, T=10.0),
+        "Morse13": lambda: systems.morse(13, T=50.0),
+        "Morse55": lambda: systems.morse(55, T=10.0),
+        "Plummer32": lambda: systems.plummer(32, T=10.0),
+        "Chain10": lambda: systems.pendulum_chain(10, T=20.0),
+    }
+
+
+# ---------------------------------------------------------------- runs
+#
+# Every run is ``run(q0, p0, knob) -> Out`` (galerkin_jax's fixed steps also ``build(system, knob)``
+# -> ``run(q0, p0) -> Out``, the knob static): the states at the SAVES + 1 save times and its counts.
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass
+class Out:
+    """A run's saved states (shape (SAVES + 1, d) each), status (0: success), accepted and
+    rejected steps, field evaluations (of DH, or of dV/dq for the splittings, at one state;
+    galerkin_jax's counted from its iterations, ``evaluations``) and iterations (galerkin_jax:
+    ``num_newton_iterations``; the midpoint rules: fixed-point updates; else 0)."""
+
+    q: jax.Array
+    p: jax.Array
+    status: jax.Array
+    steps: jax.Array
+    rejected: jax.Array
+    evaluations: jax.Array
+    iterations: jax.Array
+
+
+def segments(step_segment, q0, p0, carry0):
+    """Run ``step_segment((q, p, carry)) -> (q, p, carry, counts)`` SAVES times in a
+    ``lax.scan``; ``counts`` = (status, steps, rejected, evaluations, iterations), summed (status: max)."""
+
+    def body(c, _):
+        (q, p, carry), totals = c
+        q, p, carry, counts = step_segment(q, p, carry)
+        totals = tuple(jnp.maximum(a, b) if i == 0 else a + b for i, (a, b) in enumerate(zip(totals, counts)))
+        return ((q, p, carry), totals), (q, p)
+
+    zero = jnp.zeros((), jnp.int32)
+    ((_, _, _), totals), (qs, ps) = jax.lax.scan(body, ((q0, p0, carry0), (zero,) * 5), None, length=SAVES)
+    return Out(jnp.concatenate([q0[None], qs]), jnp.concatenate([p0[None], ps]), *totals)
+
+
+def counts(status=0, steps=0, rejected=0, evaluations=0, iterations=0):
+    return tuple(jnp.asarray(x).astype(jnp.int32) for x in (status, steps, rejected, evaluations, iterations))
+
+
+# galerkin_jax
+
+
+def cg_fixed(k):
+    """cG(k) + Gauss k at ``n = SAVES * m`` fixed steps, every m-th state saved: ``integrate(...,
+    n_steps=n, save_every=m)``, a static knob (one compilation per m). Evaluations: ``evaluations``."""
+    method = gj.CG(k, gj.gauss_legendre(k))
+
+    def build(system, m):
+        n = SAVES * m
+
+        def run(q0, p0):
+            sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=m,
+                               error_estimate=False)
+            it, steps = sol.stats["num_newton_iterations"], sol.stats["num_steps"]
+            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, evaluations(system, k, it, steps), it))
+
+        return run
+
+    return build
+
+
+def evaluations(system, k, iterations, attempts):
+    """galerkin_jax's field evaluations, counted from its iterations: k (one per Gauss point) per
+    residual, one residual per iteration and one per attempt (the start's). On states of more
+    than 8 degrees of freedom a residual is the Gauss-Seidel sweep's two halves, dH/dq and
+    dH/dp, two calls of H (``count_calls`` checks it): for a separable H the dH/dp half needs no
+    gradient of V, so it counts once; for the chain each half is a gradient of H, so twice."""
+    halves = 2 if system.V is None and system.q0.size > 8 else 1
+    return k * halves * (iterations + attempts)
+
+
+def cg_fixed_search(k):
+    """The search's stand-in for ``cg_fixed(k)``, compiled once: the same fixed steps with h
+    traced, through ``integrate(..., t1=T, save_at=...)`` (a while loop over elements of the
+    constant h, the states at the save times from the element polynomials, which end there).
+    Its errors equal the static runs' to six digits (LJ13, cG(4), seven step counts checked)."""
+    method = gj.CG(k, gj.gauss_legendre(k))
+
+    def make(system):
+        ts = jnp.linspace(0.0, system.T, SAVES + 1)
+
+        def run(q0, p0, m):
+            sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / (SAVES * m), t1=system.T, save_at=ts,
+                               max_steps=SAVES * MAX_STEPS, error_estimate=False)
+            it, steps = sol.stats["num_newton_iterations"], sol.stats["num_steps"]
+            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, evaluations(system, k, it, steps), it))
+
+        return run
+
+    return make
+
+
+def cg_pid(k):
+    """cG(k) + Gauss k with a PIDController, knob rtol = atol, one run to T / SAVES per segment.
+    Evaluations as ``evaluations`` per attempt, plus the controller's embedded estimate, one
+    per attempt."""
+    method = gj.CG(k, gj.gauss_legendre(k))
+
+    def make(system):
+        span = system.T / SAVES
+
+        def run(q0, p0, tol):
+            def step_segment(q, p, h):
+                sol = gj.integrate(system.H, q, p, method=method, h=h, t1=span, controller=gj.PIDController(tol, tol),
+                                   max_steps=MAX_STEPS, error_estimate=False)
+                s = sol.stats
+                steps, rejected, it = s["num_steps"], s["num_rejected_steps"], s["num_newton_iterations"]
+                count = evaluations(system, k, it, steps + rejected) + steps + rejected
+                h_next = span / jnp.maximum(steps, 1)
+                return sol.q[-1], sol.p[-1], h_next, counts(sol.status, steps, rejected, count, it)
+
+            return segments(step_segment, q0, p0, jnp.asarray(1e-3 * span, q0.dtype))
+
+        return run
+
+    return make
+
+
+# diffrax
+
+DIFFRAX_STAGES = {"Tsit5": 6, "Dopri8": 12}  # new field evaluations per attempt (first same as last)
+
+
+def diffrax_run(name, controlled):
+    """diffrax ``name`` (Tsit5 or Dopri8) on z = (q, p) with the field J DH (``_peers``): knob m
+    steps of T / (SAVES m) per segment (ConstantStepSize) or rtol = atol (PIDController)."""
+    solver = getattr(diffrax, name)()
+
+    def make(system):
+        span, d = system.T / SAVES, system.q0.size
+        term = diffrax.ODETerm(lambda t, z, args: peers.hamiltonian_field(system.H)(z))
+
+        def run(q0, p0, knob):
+            controller = diffrax.PIDController(rtol=knob, atol=knob) if controlled else diffrax.ConstantStepSize()
+            first = 1e-3 * span if controlled else span / knob
+
+            def step_segment(q, p, dt0):
+                sol = diffrax.diffeqsolve(term, solver, 0.0, span, dt0, jnp.concatenate([q, p]),
+                                          saveat=diffrax.SaveAt(t1=True), stepsize_controller=controller,
+                                          max_steps=MAX_STEPS, throw=False)
+                accepted, rejected = sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"]
+                status = jnp.where(sol.result == diffrax.RESULTS.successful, 0, 1)
+                evaluations = DIFFRAX_STAGES[name] * (accepted + rejected) + 1
+                dt = span / jnp.maximum(accepted, 1) if controlled else dt0
+                z = sol.ys[-1]
+                return z[:d], z[d:], dt, counts(status, accepted, rejected, evaluations)
+
+            return segments(step_segment, q0, p0, jnp.asarray(first, q0.dtype))
+
+        return run
+
+    return make
+
+
+# explicit splitting (separable H = p^2 / 2m + V)
+
+TRIPLE_JUMP = (1 / (2 - 2 ** (1 / 3)), -(2 ** (1 / 3)) / (2 - 2 ** (1 / 3)), 1 / (2 - 2 ** (1 / 3)))
+
+
+def verlet(weights=(1.0,)):
+    """Velocity Verlet (kick-drift-kick, the force reused from the step before: one gradient of V
+    per substep), composed with ``weights`` (Yoshida's triple jump: fourth order, three
+    gradients per step [Yoshida 1990]); knob m steps of T / (SAVES m) per segment."""
+
+    def make(system):
+        span, force = system.T / SAVES, jax.grad(system.V)
+        inverse_mass = jnp.asarray(1.0 / system.masses)
+
+        def run(q0, p0, m):
+            h = span / m
+
+            def substep(c, w):
+                q, p, f = c
+                p = p - 0.5 * w * h * f
+                q = q + w * h * inverse_mass * p
+                f = force(q)
+                return q, p - 0.5 * w * h * f, f
+
+            def one(_, c):
+                for w in weights:
+                    c = substep(c, w)
+                return c
+
+            def step_segment(q, p, f):
+                q, p, f = jax.lax.fori_loop(0, m, one, (q, p, f))
+                return q, p, f, counts(0, m, 0, len(weights) * m)
+
+            return segments(step_segment, q0, p0, force(q0))
+
+        return run
+
+    return make
+
+
+# implicit midpoint (any H)
+
+
+def midpoint(weights=(1.0,), max_iterations=50):
+    """The implicit midpoint rule z1 = z0 + h f((z0 + z1) / 2), f = J DH, solved by fixed-point
+    iteration on Z = z1 - z0 from the last step's Z to round-off (|dZ| <= 10 eps (1 + |z0|)),
+    the usual choice for non-stiff problems [Hairer, Lubich, Wanner, Sect. VIII.6]; composed
+    with ``weights`` (the triple jump: order 4). Symplectic and symmetric. Status 1 if a step
+    took ``max_iterations``; knob m steps of T / (SAVES m) per segment."""
+
+    def make(system):
+        span, field, d = system.T / SAVES, peers.hamiltonian_field(system.H), system.q0.size
+
+        def run(q0, p0, m):
+            h = span / m
+
+            def substep(c, w):
+                z, Z, status, it = c
+                tol = 10 * jnp.finfo(z.dtype).eps * (1 + jnp.max(jnp.abs(z)))
+
+                def iterate(s):
+                    Z, _, i = s
+                    Z1 = w * h * field(z + 0.5 * Z)
+                    return Z1, jnp.max(jnp.abs(Z1 - Z)), i + 1
+
+                Z, _, i = jax.lax.while_loop(lambda s: (s[1] > tol) & (s[2] < max_iterations), iterate,
+                                             (Z, jnp.inf, 0))
+                return z + Z, Z, jnp.where(i >= max_iterations, 1, status), it + i
+
+            def one(_, c):
+                z, Zs, status, it = c
+                Zs_new = []
+                for j, w in enumerate(weights):  # each substep predicted by its own from the last step
+                    z, Z, status, it = substep((z, Zs[j], status, it), w)
+                    Zs_new.append(Z)
+                return z, jnp.stack(Zs_new), status, it
+
+            def step_segment(q, p, Zs):
+                z, Zs, status, it = jax.lax.fori_loop(0, m, one, (jnp.concatenate([q, p]), Zs, 0, 0))
+                return z[:d], z[d:], Zs, counts(status, m, 0, it, it)
+
+            return segments(step_segment, q0, p0, jnp.zeros((len(weights), 2 * d), q0.dtype))
+
+        return run
+
+    return make
+
+
+# ---------------------------------------------------------------- solvers
+
+
+@dataclasses.dataclass(frozen=True)
+class Solver:
+    """A solver of the comparison.
+
+    Attributes:
+        name: its label.
+        ours: galerkin_jax (True) or a peer.
+        kind: "steps" (knob: steps m per segment, index i -> round(2^(i/4))) or "tol" (rtol =
+            atol, i -> 10^(-i/4)); the cost grows with i.
+        order: the error's expected exponent in the knob (steps: error ~ m^-order; tol: ~ tol^order),
+            for the first predictions; later ones use the measured slope.
+        make: ``make(system) -> run(q0, p0, knob)``, compiled once per system (the knob traced).
+        start: where the search starts: a multiple c of the system's scale step h0 (steps: m =
+            T / (SAVES c h0)) or the tolerance.
+        applies: which systems it runs on.
+        final: ``final(system, knob) -> run(q0, p0)`` where the timed run differs from ``make``'s
+            (galerkin_jax's fixed steps: n_steps is static); each cheapest knob is compiled
+            and checked again with it.
+    """
+
+    name: str
+    ours: bool
+    kind: str
+    order: float
+    make: Callable
+    start: float
+    applies: Callable = lambda system: True
+    final: Callable = None
+
+
+def separable(system):
+    return system.V is not None
+
+
+def non_separable(system):
+    return system.V is None
+
+
+def solver_list(quick):
+    """The solvers; ``start`` is a multiple of the system's scale step h0 (fixed steps) or a
+    tolerance. ``--quick`` keeps cG(4) fixed, cG(6) PID and every peer."""
+    cg = [Solver(f"cG({k})+Gauss {k}", True, "steps", 2 * k, cg_fixed_search(k), start, final=cg_fixed(k))
+          for k, start in ((3, 1.0), (4, 1.0), (6, 1.5))]
+    pid = [Solver(f"cG({k})+Gauss {k} PID", True, "tol", 1.0, cg_pid(k), 1e-4) for k in (4, 6)]
+    named_peers = [
+        Solver("diffrax Tsit5", False, "steps", 5, diffrax_run("Tsit5", False), 0.5),
+        Solver("diffrax Dopri8", False, "steps", 8, diffrax_run("Dopri8", False), 1.0),
+        Solver("diffrax Tsit5 PID", False, "tol", 1.0, diffrax_run("Tsit5", True), 1e-6),
+        Solver("diffrax Dopri8 PID", False, "tol", 1.0, diffrax_run("Dopri8", True), 1e-6),
+        Solver("velocity Verlet", False, "steps", 2, verlet(), 0.125, applies=separable),
+        Solver("Verlet triple jump (order 4)", False, "steps", 4, verlet(TRIPLE_JUMP), 0.5, applies=separable),
+        Solver("implicit midpoint", False, "steps", 2, midpoint(), 0.125, applies=non_separable),
+        Solver("midpoint triple jump (order 4)", False, "steps", 4, midpoint(TRIPLE_JUMP), 0.5,
+               applies=non_separable),
+    ]
+    if quick:
+        return [cg[1], pid[1]] + named_peers
+    return cg + pid + named_peers
+
+
+SCALE_STEP = 0.05  # h0 of ``Solver.start``: a step that resolves every system's motion
+LOOSEST_TOL = 8  # the grid index of the loosest tolerance tried: 1e-2
+
+
+def knob_value(solver, i):
+    return max(1, round(2 ** (i / 4))) if solver.kind == "steps" else 10 ** (-i / 4)
+
+
+def start_index(solver, system):
+    """``solver.start`` as a grid index for ``system``."""
+    if solver.kind == "steps":
+        return max(4, round(4 * math.log2(system.T / SAVES / (SCALE_STEP * solver.start))))
+    return max(LOOSEST_TOL, round(-4 * math.log10(solver.start)))
+
+
+# ---------------------------------------------------------------- the search
+
+
+class Probe:
+    """One solver on one system: its runs by grid index (compiled once, the knob traced), each
+    with its relative energy error; and the ``final`` runs of a solver that has them."""
+
+    def __init__(self, solver, system, cap_s):
+        self.solver, self.system, self.cap_s = solver, system, cap_s
+        self.q0, self.p0 = jnp.asarray(system.q0), jnp.asarray(system.p0)
+        self.H0 = float(system.H(self.q0, self.p0))
+        self.energies = jax.jit(jax.vmap(system.H))
+        self.records, self.finals, self.calls = {}, {}, {}
+        self.shared = None  # (compile_s, call) of make(system)
+
+    def call(self, i):
+        """(compile_s, call(q0, p0) -> Out) for index i: the final run where the solver has one."""
+        if i not in self.calls:
+            knob = knob_value(self.solver, i)
+            if self.solver.final is not None:
+                self.calls[i] = compiled(self.solver.final(self.system, knob), self.q0, self.p0)
+            else:
+                compile_s, call = self.searching()
+                self.calls[i] = (compile_s, lambda q0, p0, call=call, k=jnp.asarray(knob): call(q0, p0, k))
+        return self.calls[i]
+
+    def searching(self):
+        if self.shared is None:
+            start = knob_value(self.solver, start_index(self.solver, self.system))
+            self.shared = compiled(self.solver.make(self.system), self.q0, self.p0, jnp.asarray(start))
+        return self.shared
+
+    def __call__(self, i):
+        """The search's record of index i (its first call, timed once)."""
+        if i not in self.records:
+            compile_s, call = self.searching()
+            self.records[i] = self.record(i, lambda q0, p0: call(q0, p0, jnp.asarray(knob_value(self.solver, i))),
+                                          compile_s, show=len(self.records) == 0)
+        return self.records[i]
+
+    def final(self, i):
+        """The record of index i's timed run (``call``): the search's, or the final run's."""
+        if self.solver.final is None:
+            return self(i)
+        if i not in self.finals:
+            compile_s, call = self.call(i)
+            self.finals[i] = dict(self.record(i, call, compile_s, show=True), final=True)
+        return self.finals[i]
+
+    def record(self, i, call, compile_s, show):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(call(self.q0, self.p0))
+        first_s = time.perf_counter() - t0
+        error = self.error(out) if int(out.status) == 0 else math.inf
+        r = dict(index=i, knob=knob_value(self.solver, i), status=int(out.status),
+                 error=error if math.isfinite(error) else math.inf, steps=int(out.steps), rejected=int(out.rejected),
+                 evaluations=int(out.evaluations), iterations=int(out.iterations), compile_s=compile_s,
+                 first_s=first_s)
+        print(f"    {self.solver.name:32s} knob {r['knob']:<10.4g} error {r['error']:.2e} steps {r['steps']:7d} "
+              f"rejected {r['rejected']:5d} status {r['status']} run {first_s:7.3f} s"
+              + (f" (compile {compile_s:.1f} s)" if show else ""), flush=True)
+        return r
+
+    def error(self, out):
+        energies = np.asarray(self.energies(out.q, out.p))
+        return float(np.max(np.abs(energies - self.H0)) / abs(self.H0))
+
+    def predicted_s(self, i):
+        """A run's time at index i from the nearest measured run, by steps (fixed) or by the
+        measured time's growth with the knob (tol: 1.15x a quarter decade)."""
+        done = [r for r in self.records.values() if r["status"] == 0]
+        if not done:
+            return 0.0
+        r = min(done, key=lambda r: abs(r["index"] - i))
+        if self.solver.kind == "steps":
+            return r["first_s"] * knob_value(self.solver, i) / r["knob"]
+        return r["first_s"] * 10 ** ((i - r["index"]) / 16)
+
+
+def slope(probe, near):
+    """The measured decrease of log10 error per grid index near index ``near``, from the two
+    successful records closest to it; None if there are not two with distinct errors."""
+    done = sorted((r for r in probe.records.values() if r["status"] == 0 and 0 < r["error"] < math.inf),
+                  key=lambda r: abs(r["index"] - near))[:2]
+    if len(done) < 2 or done[0]["index"] == done[1]["index"]:
+        return None
+    a, b = done
+    s = (math.log10(a["error"]) - math.log10(b["error"])) / (b["index"] - a["index"])
+    return s if s > 0.05 else None
+
+
+def expected_slope(solver):
+    """log10 error per grid index from the solver's order."""
+    if solver.kind == "tol":
+        return solver.order / 4
+    return solver.order * math.log10(2) / 4
+
+
+def cheapest(probe, target, start, max_runs=12, max_jump=8):
+    """The smallest grid index whose run meets ``target`` (a failed run never does): from
+    ``start``, each next index predicted from the error's slope (at most ``max_jump`` indices
+    at once), until a run that meets it sits next to one that does not. Returns (index or
+    None, note)."""
+    fails, passes = -math.inf, None  # the largest index known to miss, the smallest known to meet
+    i = start
+    for _ in range(max_runs):
+        if probe.predicted_s(i) > probe.cap_s:
+            return passes, (f"knob {knob_value(probe.solver, i):.4g} predicted to take {probe.predicted_s(i):.1f} s "
+                            f"(cap {probe.cap_s:g} s)")
+        r = probe(i)
+        if r["error"] <= target:
+            passes = i if passes is None else min(passes, i)
+        else:
+            fails = max(fails, i)
+        if passes is not None and passes - fails == 1:
+            return passes, ""
+        if r["status"] != 0:
+            step = 2  # a failed run: finer steps, a smaller tolerance
+        else:
+            s = slope(probe, i) or expected_slope(probe.solver)
+            step = math.ceil((math.log10(r["error"]) - math.log10(target)) / s)
+            if r["error"] <= target:
+                step = min(step, -1)
+        lowest = max(fails + 1, LOOSEST_TOL if probe.solver.kind == "tol" else 0)
+        if passes is not None and lowest >= passes:  # e.g. the loosest tolerance tried meets it
+            return passes, ""
+        i = max(i + max(-max_jump, min(max_jump, step)), lowest)
+        if passes is not None:
+            i = min(i, passes - 1)
+    return passes, f"search ended after {max_runs} runs"
+
+
+# ---------------------------------------------------------------- one system
+
+
+def run_system(system, solvers, cap_s, quick):
+    """Every solver at every level on ``system``: the cheapest run per level (found, not yet
+    timed; ``time_cheapest`` times them), and, with ``quick``, the calls of H checked."""
+    print(f"{system.name}: {system.description}", flush=True)
+    result = dict(description=system.description, facts=system.facts, T=system.T, d=int(system.q0.size),
+                  H0=float(system.H(jnp.asarray(system.q0), jnp.asarray(system.p0))), solvers={})
+    probes = {}
+    for solver in solvers:
+        if not solver.applies(system):
+            continue
+        probe = probes[solver.name] = Probe(solver, system, cap_s)
+        entry, start = {}, start_index(solver, system)
+        for level in LEVELS:
+            index, note = cheapest(probe, level, start)
+            entry[f"{level:.0e}"] = dict(index=index, note=note)
+            if index is not None:
+                start = index
+        result["solvers"][solver.name] = dict(ours=solver.ours, kind=solver.kind, levels=entry)
+    choose_finals(result, probes)
+    cg4 = result["solvers"].get("cG(4)+Gauss 4", {}).get("levels", {}).get("1e-08", {}).get("index")
+    if quick and cg4 is not None:
+        result["calls_of_H"] = count_calls(system, 4, knob_value(probes["cG(4)+Gauss 4"].solver, cg4))
+        print(f"  calls of H: {result['calls_of_H']}", flush=True)
+    return result, probes
+
+
+FINAL_MARGIN = 1.5
+
+
+def choose_finals(result, probes):
+    """Which of galerkin_jax's fixed-step solvers get their timed run (a compilation each) at a
+    level: those whose search run there took at most FINAL_MARGIN times the fastest one's (the
+    search's while loop costs 1.4-1.8x the timed scan, alike for every k). The others keep the
+    search's run, marked ``search_only``, and do not enter the comparison."""
+    for level in (f"{x:.0e}" for x in LEVELS):
+        entries = {name: r["levels"][level] for name, r in result["solvers"].items()
+                   if probes[name].solver.final is not None and r["levels"][level]["index"] is not None}
+        if not entries:
+            continue
+        first = {name: probes[name](e["index"])["first_s"] for name, e in entries.items()}
+        fastest = min(first.values())
+        for name, entry in entries.items():
+            if first[name] > FINAL_MARGIN * fastest:
+                entry.update(probes[name](entry["index"]), search_only=True)
+
+
+def count_calls(system, k, m):
+    """Calls of H in cG(k)'s first segment at m elements per segment, counted by a callback inside
+    H, per residual (iterations + elements): what ``evaluations`` assumes, checked (2 on states
+    of more than 8 degrees of freedom, the sweep's halves; 1 below)."""
+    calls = []
+
+    def counted(q, p):
+        jax.debug.callback(lambda: calls.append(1))
+        return system.H(q, p)
+
+    method = gj.CG(k, gj.gauss_legendre(k))
+    run = jax.jit(lambda q, p: gj.integrate(counted, q, p, method=method, h=system.T / (SAVES * m), n_steps=m,
+                                            save_every=m, error_estimate=False))
+    sol = jax.block_until_ready(run(jnp.asarray(system.q0), jnp.asarray(system.p0)))
+    iterations = int(sol.stats["num_newton_iterations"])
+    return dict(method=f"cG({k})+Gauss {k}", elements=m, calls=len(calls), iterations=iterations,
+                calls_per_residual=len(calls) / (iterations + m))
+
+
+def time_cheapest(result, probes, repeat, budget_s):
+    """Time each solver's cheapest run per level (the same index once) and attach it. Where
+    the timed run is a ``final`` one, its own error must meet the level too, else the next
+    index is taken (at most twice)."""
+    for name, solver_result in result["solvers"].items():
+        probe = probes[name]
+        for level, entry in solver_result["levels"].items():
+            if entry["index"] is None or entry.get("search_only"):
+                continue
+            record = probe.final(entry["index"])
+            while record["error"] > float(level) and record["index"] < entry["index"] + 2:
+                record = probe.final(record["index"] + 1)
+            if record["error"] > float(level):
+                entry.update(index=None, note=f"its final run missed: error {record['error']:.2e}")
+                continue
+            compile_s, call = probe.call(record["index"])
+            record["run_s"] = min(record.get("run_s", math.inf),
+                                  best_time(call, probe.q0, probe.p0, repeat=repeat, budget_s=budget_s))
+            entry.update(record)
+
+
+def summarize(result):
+    """Per level: the best galerkin_jax run, the best peer, the ratio of their run times."""
+    summary = {}
+    for level in (f"{x:.0e}" for x in LEVELS):
+        best = {}
+        for side in (True, False):
+            candidates = [(name, r["levels"][level]) for name, r in result["solvers"].items()
+                          if r["ours"] == side and r["levels"][level].get("run_s") is not None]
+            best[side] = min(candidates, key=lambda c: c[1]["run_s"], default=None)
+        ours, peer = best[True], best[False]
+        summary[level] = dict(
+            ours=None if ours is None else dict(solver=ours[0], **ours[1]),
+            peer=None if peer is None else dict(solver=peer[0], **peer[1]),
+            ratio=ours[1]["run_s"] / peer[1]["run_s"] if ours and peer else None,
+            evaluations_ratio=ours[1]["evaluations"] / peer[1]["evaluations"] if ours and peer else None,
+        )
+    result["summary"] = summary
+
+
+# ---------------------------------------------------------------- tables
+
+
+def describe(run, kind_of):
+    if run is None:
+        return "none reached it"
+    knob = knob_text(kind_of[run["solver"]], run)
+    rejected = f" + {run['rejected']} rejected" if run["rejected"] else ""
+    return (f"{run['solver']}, {knob}: {1e3 * run['run_s']:.3g} ms ({run['steps']} steps{rejected}, "
+            f"compile {run['compile_s']:.1f} s)")
+
+
+def knob_text(kind, run):
+    return f"n = {SAVES * run['knob']}" if kind == "steps" else f"tol {run['knob']:.1e}"
+
+
+def tables(results):
+    """The summary (best of each side, ratio), then per system every solver's cheapest runs."""
+    return "\n\n".join([summary_table(results)] + [detail_table(n, r) for n, r in results.items()]) + "\n"
+
+
+def summary_table(results):
+    lines = ["| system | max \\|dH/H\\| | best galerkin_jax | best peer | ratio (time) | ratio (field evaluations) |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for name, result in results.items():
+        kinds = {s: r["kind"] for s, r in result["solvers"].items()}
+        for level, row in result["summary"].items():
+            ratio = "n/a" if row["ratio"] is None else f"{row['ratio']:.2f}x"
+            ev = "n/a" if row["evaluations_ratio"] is None else f"{row['evaluations_ratio']:.2f}x"
+            lines.append(f"| {name} | {level} | {describe(row['ours'], kinds)} | {describe(row['peer'], kinds)} | "
+                         f"{ratio} | {ev} |")
+    return "\n".join(lines)
+
+
+def detail_table(name, result):
+    header = " | ".join(f"{x:.0e}: ms / steps (+ rejected) / field evaluations" for x in LEVELS)
+    lines = [f"{name}: {result['description']}; d = {result['d']}, H0 = {result['H0']:.6g}", "",
+             f"| solver | {header} |", "| --- |" + " --- |" * len(LEVELS)]
+    for solver, r in result["solvers"].items():
+        cells = [cell(r["kind"], r["levels"][f"{x:.0e}"]) for x in LEVELS]
+        lines.append(f"| {solver} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def cell(kind, e):
+    """One solver's cheapest run at one level: time / steps / evaluations (knob, iterations per
+    step where it iterates, time per evaluation)."""
+    if e.get("search_only"):
+        return (f"search run {1e3 * e['first_s']:.3g} / {e['steps']} / {e['evaluations']} ({knob_text(kind, e)}; "
+                f"not timed: over {FINAL_MARGIN}x the best k's search run)")
+    if e.get("run_s") is None:
+        return "not reached" + (f" ({e['note']})" if e.get("note") else "")
+    attempts = e["steps"] + e["rejected"]
+    its = f", {e['iterations'] / attempts:.1f} it/step" if e["iterations"] else ""
+    rejected = f" + {e['rejected']}" if e["rejected"] else ""
+    return (f"{1e3 * e['run_s']:.3g} / {e['steps']}{rejected} / {e['evaluations']} "
+            f"({knob_text(kind, e)}{its}, {1e6 * e['run_s'] / e['evaluations']:.2f} us/eval)")
+
+
+# ---------------------------------------------------------------- the price of one gradient
+
+
+def gradient_costs(system, points=(3, 4, 6), calls=200):
+    """Microseconds per gradient at one state: of H (both halves, the diffrax field's cost) and
+    of dH/dq alone (a splitting's force, the sweep's q half), and dH/dq vmapped over k states
+    (a cG(k) residual's q half), per state. Each is ``calls`` chained calls in one compiled
+    loop, best of 5."""
+    q0, p0 = jnp.asarray(system.q0), jnp.asarray(system.p0)
+    grad_both, grad_q = jax.grad(system.H, argnums=(0, 1)), jax.grad(system.H, argnums=0)
+
+    def cost(step, q, p, states=1):
+        loop = lambda q, p: jax.lax.fori_loop(0, calls, lambda _, c: step(*c), (q, p))
+        _, call = compiled(loop, q, p)
+        return 1e6 * best_time(call, q, p, repeat=5) / calls / states
+
+    def both(q, p):
+        dq, dp = grad_both(q, p)
+        return q + 1e-16 * dq, p + 1e-16 * dp
+
+    row = {"dH": cost(both, q0, p0), "dH/dq": cost(lambda q, p: (q + 1e-16 * grad_q(q, p), p), q0, p0)}
+    for k in points:
+        Q, P = jnp.stack([q0] * k), jnp.stack([p0] * k)
+        row[f"dH/dq at {k} states, per state"] = cost(lambda q, p: (q + 1e-16 * jax.vmap(grad_q)(q, p), p), Q, P, k)
+    print(f"  {system.name}: " + ", ".join(f"{key} {value:.2f} us" for key, value in row.items()), flush=True)
+    return row
+
+
+# ---------------------------------------------------------------- main
+
+
+def versions():
+    import optimistix
+    import scipy
+
+    return {"diffrax": diffrax.__version__, "optimistix": optimistix.__version__, "scipy": scipy.__version__,
+            "numpy": np.__version__, "jax_enable_x64": bool(jax.config.jax_enable_x64)}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="small systems, short spans, a few solvers (minutes)")
+    parser.add_argument("--only", nargs="+", metavar="SYSTEM", help="run only these systems (names as in the table)")
+    parser.add_argument("--cap", type=float, default=None, help="the longest predicted run that is run (s; "
+                        "default 3, --quick 0.5)")
+    parser.add_argument("--gradients", action="store_true", help="only the price of one gradient per system "
+                        "(gradient_costs; writes moderate_gradients.json)")
+    parser.add_argument("--name", help="output name (default moderate, with _quick and the systems run when not all)")
+    options = parser.parse_args()
+    available = system_list(options.quick)
+    chosen = options.only or list(available)
+    unknown = sorted(set(chosen) - set(available))
+    if unknown:
+        parser.error(f"unknown systems {unknown}; choose from {list(available)}")
+    cap_s = options.cap or (0.5 if options.quick else 3.0)
+    suffix = ("_quick" if options.quick else "") + ("" if chosen == list(available) else "_" + "_".join(chosen))
+    name = options.name or "moderate" + ("_gradients" if options.gradients else "") + suffix
+    before, start = machine(), time.perf_counter()
+    if options.gradients:
+        write(name, {"machine_before": before, "gradients_us": {n: gradient_costs(available[n]()) for n in chosen}})
+        return
+    solvers = solver_list(options.quick)
+    results, all_probes = {}, {}
+    repeat, budget_s = (1, 0.5) if options.quick else (3, 3.0)
+    for system_name in chosen:
+        system = available[system_name]()
+        results[system_name], all_probes[system_name] = run_system(system, solvers, cap_s, options.quick)
+        time_cheapest(results[system_name], all_probes[system_name], repeat, budget_s)
+    # a second timing pass, minutes after the first: this machine's speed drifts
+    for system_name in chosen:
+        time_cheapest(results[system_name], all_probes[system_name], repeat, budget_s)
+        summarize(results[system_name])
+        for probe_name, probe in all_probes[system_name].items():
+            entry = results[system_name]["solvers"][probe_name]
+            entry["runs"] = sorted(probe.records.values(), key=lambda r: r["index"])
+            entry["final_runs"] = sorted(probe.finals.values(), key=lambda r: r["index"])
+    markdown = tables(results)
+    total_s = time.perf_counter() - start
+    after = machine()
+    header = (f"`{after['command']}`, {time.strftime('%Y-%m-%d')}, {total_s / 60:.1f} min; {after['processor']}, "
+              f"{os.cpu_count()} cores, JAX {after['jax']}, diffrax {diffrax.__version__}, float64; load average "
+              f"{' '.join(before['load_average'])} before, {' '.join(after['load_average'])} after.\n\n")
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{name}.md").write_text(header + markdown)
+    write(name, {"machine_before": before, "quick": options.quick, "versions": versions(), "saves": SAVES,
+                 "levels": list(LEVELS), "cap_s": cap_s, "total_s": total_s, "systems": results, "table": markdown})
+    print(markdown)
+    print(f"total {total_s / 60:.1f} min")
+
+
+if __name__ == "__main__":
+    main()
