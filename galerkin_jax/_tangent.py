@@ -9,12 +9,15 @@ cotangent meets ``(dR/dZ)^{-T}``. The linear solve follows the forward solve of 
 
 * up to ``dense_limit`` unknowns (where the forward solve keeps a dense Newton matrix too),
   ``dR/dZ`` by ``jacfwd`` and an LU solve: exact to round-off, and cheap at that size;
-* above it, restarted GMRES on Jacobian-vector products of R (``jax.linearize``), whose
-  transpose is GMRES on vector-Jacobian products. Reverse mode then stores O(n) numbers per
-  element, never an n x n matrix, and a product costs about one linearised residual
-  evaluation, where the matrix costs n of them and its LU n^3 / 3 multiplications.
+* above it, matrix-free on Jacobian-vector products of R (``jax.linearize``), whose transpose
+  is the same on vector-Jacobian products: Richardson's iteration x <- x + (b - dR/dZ x),
+  which contracts wherever the forward solve's fixed point does (dR/dZ is I less the fixed
+  point's Jacobian; a few products to the tolerance), and restarted GMRES from where it
+  stopped where it does not (``_iterated``). Reverse mode then stores O(n) numbers per element,
+  never an n x n matrix, and a product costs about one linearised residual evaluation, where
+  the matrix costs n of them and its LU n^3 / 3 multiplications.
 
-GMRES stops at a relative residual ``|dR/dZ dZ - b| <= TOLERANCE eps |b|``: there are no
+Both stop at a relative residual ``|dR/dZ dZ - b| <= TOLERANCE eps |b|``: there are no
 later updates to refine the tangent (unlike a Newton direction), and the error of every
 element's tangent is carried into the gradient of the whole run. Its result is accepted when
 its residual, recomputed, is below ``sqrt(eps) |b|`` (the forward solve's bound on an
@@ -56,7 +59,7 @@ def tangent(fn, params, Z, ok, dparams, *, dense_limit):
         _, jvp = jax.linearize(lambda z: fn(z, params), Z)
         # a failed member's matrix is I: a finite solve, whose result is masked below
         matvec = lambda v: jnp.where(ok, jvp(v), v)
-        dZ = -jax.lax.custom_linear_solve(matvec, dR, solve=_gmres, transpose_solve=_gmres)
+        dZ = -jax.lax.custom_linear_solve(matvec, dR, solve=_iterated, transpose_solve=_iterated)
     return jnp.where(ok, dZ, 0.0)
 
 
@@ -64,6 +67,33 @@ def _dense(fn, params, Z, ok, dR):
     J = jax.jacfwd(lambda z: fn(z.reshape(Z.shape), params).reshape(-1))(Z.reshape(-1))
     J = jnp.where(ok, J, jnp.eye(J.shape[0], dtype=J.dtype))
     return -jnp.linalg.solve(J, dR.reshape(-1)).reshape(Z.shape)
+
+
+# Richardson iterations before GMRES takes over: the fixed point's contraction, where it
+# converges, reaches the tolerance in a few tens
+RICHARDSON = 48
+
+
+def _iterated(matvec, b):
+    """``x`` with ``matvec(x) = b`` by Richardson's iteration x <- x + (b - matvec(x)), which
+    contracts where the forward solve's fixed point does (the element Jacobian is I minus its
+    iteration's), at the cost of one product per iteration and nothing else; GMRES (``_gmres``)
+    from where it stopped, where it did not reach the tolerance (a stiff element)."""
+    eps = jnp.finfo(b.dtype).eps
+    limit = (TOLERANCE * eps) ** 2 * jnp.sum(b * b)
+
+    def going(s):
+        k, x, r2, shrinking = s
+        return (k < RICHARDSON) & (r2 > limit) & shrinking
+
+    def step(s):
+        k, x, r2, _ = s
+        r = b - matvec(x)
+        r2_new = jnp.sum(r * r)
+        return k + 1, x + r, r2_new, r2_new < r2
+
+    _, x, r2, _ = jax.lax.while_loop(going, step, (0, jnp.zeros_like(b), jnp.sum(b * b), jnp.ones((), bool)))
+    return jax.lax.cond(r2 <= limit, lambda x: x, lambda x: x + _gmres(matvec, b - matvec(x)), x)
 
 
 def _gmres(matvec, b):
