@@ -147,7 +147,7 @@ def ours(method, kind):
             sol = gj.integrate(H, q0, p0, method=method, h=h, t1=T, controller=controller, max_steps=MAX_STEPS,
                                error_estimate=False)
             s = sol.stats
-            return (jnp.concatenate([sol.q[-1], sol.p[-1]]), sol.status, s["num_steps"], s["num_rejected_steps"],
+            return (jnp.concatenate([sol.q[-1], sol.p[-1]]), sol.status, s["num_accepted_steps"], s["num_rejected_steps"],
                     s["num_newton_iterations"])
 
         return run
@@ -325,7 +325,7 @@ def energy_run(kind, method, H, q0, p0, T, max_steps):
     def uniform(knob, q0, p0):
         n = int(np.ceil(T / knob))
         sol = gj.integrate(H, q0, p0, method=method, h=knob, n_steps=n, error_estimate=False)
-        return (jax.vmap(H)(sol.q, sol.p) - H(q0, p0), sol.t, sol.stats["num_steps"], sol.status,
+        return (jax.vmap(H)(sol.q, sol.p) - H(q0, p0), sol.t, sol.stats["num_accepted_steps"], sol.status,
                 sol.stats["num_newton_iterations"])
 
     def run(knob):
@@ -339,7 +339,7 @@ def energy_run(kind, method, H, q0, p0, T, max_steps):
         sol = gj.integrate(H, q0, p0, method=method, t1=T, max_steps=max_steps, dense=True, error_estimate=False, **kw)
         q, p = sol.dense.view(sol.dense.z)
         H0 = H(q0, p0)
-        return jax.vmap(H)(q, p) - H0, sol.dense.t, sol.stats["num_steps"], sol.status, sol.stats["num_newton_iterations"]
+        return jax.vmap(H)(q, p) - H0, sol.dense.t, sol.stats["num_accepted_steps"], sol.status, sol.stats["num_newton_iterations"]
 
     return run
 
@@ -451,7 +451,7 @@ def estimate_share(label, prob, k, tol):
     compile_pid, call_pid = compiled(pid, q0, p0)
     sol = call_pid(q0, p0)
     assert int(sol.status) == 0
-    steps, rejected = int(sol.stats["num_steps"]), int(sol.stats["num_rejected_steps"])
+    steps, rejected = int(sol.stats["num_accepted_steps"]), int(sol.stats["num_rejected_steps"])
     run_pid = best_time(call_pid, q0, p0, repeat=5)
     t, z, W = (np.asarray(x) for x in (sol.dense.t, sol.dense.z, sol.dense.W))
     h = jnp.asarray(np.diff(t[: steps + 1]))
@@ -484,7 +484,7 @@ def estimate_share(label, prob, k, tol):
     try:
         plain = lambda H: lambda q0, p0: gj.integrate(H, q0, p0, method=method, h=1e-3 * T, t1=T,
                                                       controller=gj.PIDController(tol, tol), max_steps=max_steps,
-                                                      error_estimate=False).stats["num_steps"]
+                                                      error_estimate=False).stats["num_accepted_steps"]
         compile_padded, call_padded = compiled(plain(H_padded), q0, p0)
     finally:
         adaptive.embedded_error = original

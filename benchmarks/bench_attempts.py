@@ -148,8 +148,8 @@ def main():
                 run_s = best_time(call, q0, p0, jnp.asarray(tol), repeat=5, min_s=0.2)
                 with Counting() as counting:
                     counted = jax.jit(lambda q0, p0, tol: run(method, q0, p0, T, tol))(q0, p0, jnp.asarray(tol))
-                assert int(counted.stats["num_steps"]) == int(sol.stats["num_steps"])  # the same run
-                attempts = int(sol.stats["num_steps"]) + int(sol.stats["num_rejected_steps"])
+                assert int(counted.stats["num_accepted_steps"]) == int(sol.stats["num_accepted_steps"])  # the same run
+                attempts = int(sol.stats["num_accepted_steps"]) + int(sol.stats["num_rejected_steps"])
                 error = final_error(sol, q0, p0)
                 rec = dict(e=e, method=f"cG({k})+Gauss {k}", tol=tol, status=int(sol.status), attempts=attempts,
                            error=error, run_ms=1e3 * run_s, compile_s=compile_s, us_per_attempt=1e6 * run_s / attempts,
@@ -157,7 +157,7 @@ def main():
                            by_category=per_attempt(counting, int(sol.stats["num_newton_iterations"])))
                 sol_i = call_i(q0, p0, jnp.asarray(tol))
                 rec["i_control"] = dict(  # the same run with predictive=False (diffrax's controller)
-                    steps=int(sol_i.stats["num_steps"]), rejected=int(sol_i.stats["num_rejected_steps"]),
+                    steps=int(sol_i.stats["num_accepted_steps"]), rejected=int(sol_i.stats["num_rejected_steps"]),
                     iterations=int(sol_i.stats["num_newton_iterations"]),
                     error=final_error(sol_i, q0, p0),
                     run_ms=1e3 * best_time(call_i, q0, p0, jnp.asarray(tol), repeat=5, min_s=0.2))

@@ -134,7 +134,7 @@ def peers_part():
         final = run(q0, tol)
         error = float(np.max(np.abs(np.concatenate([final.q[-1]]) - reference)))
         loss = lambda q0: jnp.sum(run(q0, tol).q[-1] ** 2)
-        ours = dict(steps=int(final.stats["num_steps"]), final_error=error,
+        ours = dict(steps=int(final.stats["num_accepted_steps"]), final_error=error,
                     forward_s=timed(lambda q0: run(q0, tol).q[-1], q0)[1], gradient_s=timed(jax.grad(loss), q0)[1])
         ours["gradient_over_forward"] = ours["gradient_s"] / ours["forward_s"]
         dH = jax.grad(H, argnums=(0, 1))
@@ -145,7 +145,7 @@ def peers_part():
                                                    stepsize_controller=diffrax.PIDController(rtol=peer_tol, atol=peer_tol))
             sol = solve(q0)
             peer_loss = lambda q0: jnp.sum(solve(q0).ys[0][-1] ** 2)
-            peers.append(dict(tol=float(peer_tol), steps=int(sol.stats["num_steps"]),
+            peers.append(dict(tol=float(peer_tol), steps=int(sol.stats["num_accepted_steps"]),
                               final_error=float(np.max(np.abs(np.asarray(sol.ys[0][-1]) - reference))),
                               forward_s=timed(lambda q0: solve(q0).ys[0][-1], q0)[1],
                               gradient_s=timed(jax.grad(peer_loss), q0)[1]))
@@ -175,7 +175,7 @@ def long_part():
     loss = lambda q0: jnp.sum(gj.integrate(H, q0, p0, method=method, h=0.05, t1=span, max_steps=1_000_000,
                                            controller=gj.PIDController(1e-6, 1e-6)).q[-1] ** 2)
     steps = int(gj.integrate(H, q0, p0, method=method, h=0.05, t1=span, max_steps=1_000_000,
-                             controller=gj.PIDController(1e-6, 1e-6)).stats["num_steps"])
+                             controller=gj.PIDController(1e-6, 1e-6)).stats["num_accepted_steps"])
     out.update(scene=label + ", PID 1e-6", span=span, steps=steps,
                gradient_s=timed(jax.grad(loss), q0, repeat=1)[1],
                gradient_temp_mb=temp_mb(jax.grad(loss), q0))

@@ -148,7 +148,7 @@ def cg_fixed(k):
         def run(q0, p0):
             sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=m,
                                error_estimate=False)
-            it, steps = sol.stats["num_newton_iterations"], sol.stats["num_steps"]
+            it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
             return Out(sol.q, sol.p, *counts(sol.status, steps, 0, evaluations(system, k, it, steps), it))
 
         return run
@@ -179,7 +179,7 @@ def cg_fixed_search(k):
         def run(q0, p0, m):
             sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / (SAVES * m), t1=system.T, save_at=ts,
                                max_steps=SAVES * MAX_STEPS, error_estimate=False)
-            it, steps = sol.stats["num_newton_iterations"], sol.stats["num_steps"]
+            it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
             return Out(sol.q, sol.p, *counts(sol.status, steps, 0, evaluations(system, k, it, steps), it))
 
         return run
@@ -201,7 +201,7 @@ def cg_pid(k):
                 sol = gj.integrate(system.H, q, p, method=method, h=h, t1=span, controller=gj.PIDController(tol, tol),
                                    max_steps=MAX_STEPS, error_estimate=False)
                 s = sol.stats
-                steps, rejected, it = s["num_steps"], s["num_rejected_steps"], s["num_newton_iterations"]
+                steps, rejected, it = s["num_accepted_steps"], s["num_rejected_steps"], s["num_newton_iterations"]
                 count = evaluations(system, k, it, steps + rejected) + steps + rejected
                 h_next = span / jnp.maximum(steps, 1)
                 return sol.q[-1], sol.p[-1], h_next, counts(sol.status, steps, rejected, count, it)

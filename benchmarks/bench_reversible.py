@@ -59,7 +59,7 @@ def time_transform(H, q0, p0, T, sigma, eps):
         sol = gj.integrate(H, q0, p0, method=METHOD, h=eps, t1=T, controller=gj.TimeTransform(sigma),
                            max_steps=max_steps, dense=True, error_estimate=False)
         q, p = sol.dense.view(sol.dense.z)
-        return sol.dense.t, jax.vmap(H)(q, p) - H(q0, p0), sol.stats["num_steps"], sol.status
+        return sol.dense.t, jax.vmap(H)(q, p) - H(q0, p0), sol.stats["num_accepted_steps"], sol.status
 
     return jax.jit(run)
 

@@ -74,8 +74,8 @@ def one(e, h, name):
     K = np.asarray(jax.vmap(s)(q, p)) * dH
     r = np.linalg.norm(np.asarray(q), axis=1)
     worst = int(np.argmax(np.abs(dH)))
-    return dict(e=e, h=h, density=name, status=int(sol.status), steps=int(sol.stats["num_steps"]),
-                iterations_per_step=int(sol.stats["num_newton_iterations"]) / int(sol.stats["num_steps"]),
+    return dict(e=e, h=h, density=name, status=int(sol.status), steps=int(sol.stats["num_accepted_steps"]),
+                iterations_per_step=int(sol.stats["num_newton_iterations"]) / int(sol.stats["num_accepted_steps"]),
                 max_energy_error=float(np.abs(dH).max()), at_radius=float(r[worst]),
                 K_after_first_step=float(K[1]), K_at_end=float(K[-1]))
 

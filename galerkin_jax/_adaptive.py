@@ -26,6 +26,7 @@ import jax.numpy as jnp
 
 from . import _output
 from ._controllers import PIDController, TimeTransform, embedded_error, poincare, scaled_error
+from ._defect import symplectic_field
 from ._march import (bind_args, compensated_add, continued, element_residual, input_status, peak_estimate, peak_start,
                      peak_update, state_scale)
 from ._solve import Status, initial_matrix, solve
@@ -49,15 +50,17 @@ def _crossing(event, g_a, g_b):
 
 def _pid_rule(controller, order, tiny):
     """Error-per-step control: accept where the scaled embedded estimate is <= 1; h by the PID
-    factor; a rejected step below dtmin (or the round-off of t) ends the run (DTMIN)."""
+    factor, clipped to [dtmin, dtmax] (as diffrax does); a step rejected at dtmin (or at the
+    round-off of t) ends the run there (DTMIN), where diffrax would accept it (``force_dtmin``):
+    a step whose error exceeds the tolerance is not passed off as a result."""
 
     def rule(c, step):
         err = jnp.where(step["solved"], scaled_error(step["embedded"], step["z"], step["z1"], controller), jnp.inf)
         accept = err <= 1
         # h_prev: the last accepted h
         h_ratio = jnp.where(c["steps"] > 0, step["h"] / c["h_prev"], jnp.nan) if controller.predictive else None
-        h_next = jnp.minimum(step["h"] * controller.next_factor(err, c["err1"], c["err2"], order, accept, h_ratio),
-                             controller.dtmax)
+        h_next = jnp.clip(step["h"] * controller.next_factor(err, c["err1"], c["err2"], order, accept, h_ratio),
+                          controller.dtmin, controller.dtmax)
         at_floor = ~accept & ((step["h"] <= controller.dtmin) | (h_next <= tiny))
         memory = dict(err1=jnp.where(accept, err, c["err1"]), err2=jnp.where(accept, c["err1"], c["err2"]))
         return dict(accept=accept, finished=accept & step["last"], t_b=jnp.where(step["last"], step["t1"],
@@ -65,6 +68,24 @@ def _pid_rule(controller, order, tiny):
                     rejected=~accept & ~at_floor, memory=memory)
 
     return rule, dict(err1=jnp.ones((), tiny.dtype), err2=jnp.ones((), tiny.dtype))
+
+
+def initial_step(field, z0, order, controller, span):
+    """The first step of a controlled run where none is given: the starting step algorithm of
+    Hairer, Norsett and Wanner (Solving ODEs I, Sec. II.4, as diffrax's), with the tolerances'
+    scale ``atol + rtol |z0|`` and the embedded estimate's ``order``: h0 = 0.01 |z0| / |f(z0)|,
+    one explicit Euler step to measure the field's change, then the h whose local error of
+    that order meets 0.01, at most 100 h0 and the span."""
+    rms = lambda x: jnp.sqrt(jnp.mean(x * x))
+    scale = controller.atol + controller.rtol * jnp.abs(z0)
+    f0 = field(z0)
+    d0, d1 = rms(z0 / scale), rms(f0 / scale)
+    h0 = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / jnp.where(d1 > 0, d1, 1.0))
+    d2 = rms((field(z0 + h0 * f0) - f0) / scale) / h0
+    largest = jnp.maximum(d1, d2)
+    h1 = jnp.where(largest <= 1e-15, jnp.maximum(1e-6, 1e-3 * h0), (0.01 / jnp.where(largest > 0, largest, 1.0))
+                   ** (1.0 / order))
+    return jax.lax.stop_gradient(jnp.minimum(jnp.minimum(100 * h0, h1), span))
 
 
 def _transform_rule(s, clock, view, tiny):
@@ -109,26 +130,57 @@ def element_count(t0, t1, h):
     return jnp.maximum(1, jnp.ceil((t1 - t0) / h * (1 - 4 * jnp.finfo(jnp.result_type(h)).eps))).astype(jnp.int32)
 
 
-def _event_update(event, g, c, step, accept, clock):
-    """Locate a sign change of g on the accepted element's polynomial; returns the carry's event
-    fields and the event ``(hit, t, z)``."""
+# the sub-intervals of an element on which each event's g is sampled: every sign change of g
+# between samples is located (crossings closer together than 1/16 of an element are missed)
+EVENT_SAMPLES = 16
+
+
+def _events_update(events, gs, c, step, accept, clock):
+    """Locate every sign change of each event's g on the accepted element's polynomial, in order:
+    g sampled at ``EVENT_SAMPLES`` sub-intervals (its ends: the nodes), each bracket that
+    changes sign in the event's direction refined by ``_output.locate``. A terminal event's first
+    crossing ends the run there; no later crossing of any event in the element counts.
+    Returns the carry's event fields and ``(alpha_stop, ended)``: where a terminal event ended
+    the run (inf: none did) and which (-1: none)."""
     z, W, t, h = step["z"], step["W"], step["t"], step["h"]
     dtype = z.dtype
-    g_b = g(step["t_b"], step["z1"])
-    hit = accept & _crossing(event, c["g_a"], g_b)
-    f = lambda a: g(_output.time_at(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
-    alpha = _output.locate(f, jnp.zeros((), dtype), jnp.ones((), dtype), c["g_a"])
-    at = _output.on_polynomial(z, W, alpha[None])[0]
-    t_ev = _output.time_at(z, W, alpha, t, h, clock)
-    slot = jnp.where(hit & (c["ev_count"] < event.capacity), c["ev_count"], event.capacity)
-    fields = dict(ev_t=c["ev_t"].at[slot].set(t_ev, mode="drop"), ev_z=c["ev_z"].at[slot].set(at, mode="drop"),
-                  ev_n=c["ev_n"].at[slot].set(c["steps"], mode="drop"),
-                  ev_alpha=c["ev_alpha"].at[slot].set(alpha, mode="drop"),
-                  ev_count=c["ev_count"] + hit, g_a=jnp.where(accept, g_b, c["g_a"]))
-    return fields, (hit, t_ev, at)
+    alphas = jnp.linspace(0.0, 1.0, EVENT_SAMPLES + 1, dtype=dtype)
+    inner = _output.on_polynomial(z, W, alphas[1:-1])
+    inner_t = jax.vmap(lambda a: _output.time_at(z, W, a, t, h, clock))(alphas[1:-1])
+    found = []
+    for event, g, g_a in zip(events, gs, c["g_a"]):
+        g_b = g(step["t_b"], step["z1"])
+        values = jnp.concatenate([g_a[None], jax.vmap(g)(inner_t, inner), g_b[None]])
+        crossing = accept & _crossing(event, values[:-1], values[1:])
+        f = lambda a: g(_output.time_at(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
+
+        def located(_):
+            roots = jax.vmap(lambda lo, hi, f_lo: _output.locate(f, lo, hi, f_lo))(alphas[:-1], alphas[1:], values[:-1])
+            return jnp.where(crossing, roots, jnp.inf)
+
+        roots = jax.lax.cond(jnp.any(crossing), located, lambda _: jnp.full(crossing.shape, jnp.inf, dtype), None)
+        found.append((roots, g_b))
+    firsts = jnp.stack([jnp.min(roots) if event.terminal else jnp.inf for event, (roots, _) in zip(events, found)])
+    alpha_stop, ended = jnp.min(firsts), jnp.where(jnp.isfinite(jnp.min(firsts)), jnp.argmin(firsts), -1)
+    fields = {k: [] for k in ("g_a", "ev_t", "ev_z", "ev_n", "ev_alpha", "ev_count")}
+    for k, (event, (roots, g_b)) in enumerate(zip(events, found)):
+        valid = jnp.isfinite(roots) & (roots <= alpha_stop) & ((ended == k) | ~event.terminal | (roots < alpha_stop))
+        slot = jnp.where(valid, c["ev_count"][k] + jnp.cumsum(valid) - 1, event.capacity)
+        at = _output.on_polynomial(z, W, jnp.where(valid, roots, 0.0))
+        times = jax.vmap(lambda a: _output.time_at(z, W, a, t, h, clock))(jnp.where(valid, roots, 0.0))
+        write = lambda buffer, values: buffer.at[slot].set(values, mode="drop")
+        fields["ev_t"].append(write(c["ev_t"][k], times))
+        fields["ev_z"].append(write(c["ev_z"][k], at))
+        fields["ev_n"].append(write(c["ev_n"][k], jnp.broadcast_to(c["steps"], slot.shape)))
+        fields["ev_alpha"].append(write(c["ev_alpha"][k], roots))
+        fields["ev_count"].append(c["ev_count"][k] + jnp.sum(valid).astype(jnp.int32))
+        fields["g_a"].append(jnp.where(accept, g_b, c["g_a"][k]))
+    fields = {k: tuple(v) for k, v in fields.items()}
+    fields["ev_count"] = jnp.stack(fields["ev_count"])
+    return fields, (alpha_stop, ended.astype(jnp.int32))
 
 
-def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, event, g, observe, acc0, estimate,
+def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, events, gs, observe, acc0, estimate,
                    every):
     dtype = z0.dtype
     q0, p0 = jnp.split(z0, 2)
@@ -147,12 +199,15 @@ def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, 
     if dense:
         c["node_t"] = jnp.full((max_steps + 1,), jnp.inf, dtype).at[0].set(t0)
         c["node_z"] = jnp.full((max_steps + 1,) + z0.shape, jnp.nan, dtype).at[0].set(z0)
+    if dense is True:
         c["W"] = jnp.zeros((max_steps, m) + z0.shape, dtype)
-    if event is not None:
-        shape = (event.capacity,)
-        c.update(g_a=g(t0, z0), ev_t=jnp.full(shape, jnp.nan, dtype), ev_z=jnp.full(shape + z0.shape, jnp.nan, dtype),
-                 ev_n=jnp.full(shape, -1, jnp.int32), ev_alpha=jnp.full(shape, jnp.nan, dtype),
-                 ev_count=jnp.zeros((), jnp.int32))
+    if events is not None:
+        shapes = [(event.capacity,) for event in events]
+        c.update(g_a=tuple(g(t0, z0) for g in gs), ev_t=tuple(jnp.full(s, jnp.nan, dtype) for s in shapes),
+                 ev_z=tuple(jnp.full(s + z0.shape, jnp.nan, dtype) for s in shapes),
+                 ev_n=tuple(jnp.full(s, -1, jnp.int32) for s in shapes),
+                 ev_alpha=tuple(jnp.full(s, jnp.nan, dtype) for s in shapes),
+                 ev_count=jnp.zeros((len(events),), jnp.int32), ended=jnp.full((), -1, jnp.int32))
     if estimate is True:
         c["peak"] = peak_start(q0, p0, guess, h0)
     if every:
@@ -163,7 +218,7 @@ def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, 
 
 
 def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, ts=None, dense=False,
-        event=None, estimate=False, clock=None, s=None, observe=None, acc0=None, every=None):
+        events=None, estimate=False, clock=None, s=None, observe=None, acc0=None, every=None):
     """Integrate from t0 to t1 with the step rule ``controller`` (None: the constant h0).
 
     Args:
@@ -175,6 +230,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         estimate: the largest local error of the accepted elements, as in ``march``: "full",
             True (the full estimate where the embedded one peaks) or False (NaN).
         observe, acc0: ``(acc, q, p) -> acc`` folded over the accepted states (``march``).
+        dense: keep every accepted node's time and state (``node_t``, ``node_z``) and, True,
+            every element's polynomial (``W``); "nodes": the nodes alone (``save_at="steps"``).
         every: keep ``checkpoints`` (z, t and acc at every ``every``-th accepted node, from the
             first), for the derivatives (``_adjoint``); None: none.
     Returns:
@@ -188,13 +245,15 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     z0 = jnp.concatenate([q0, p0])
     dtype = z0.dtype
     guess = method.initial_guess(q0, p0)
-    m = method.polynomial(H_bound, q0, p0, guess, h0).shape[0]
+    m = jax.eval_shape(lambda: method.polynomial(H_bound, q0, p0, guess, jnp.ones((), dtype))).shape[0]
     t0, t1 = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype)
     tiny = 16 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))
     pid = isinstance(controller, PIDController)
     if pid:
         rule, memory = _pid_rule(controller, m, tiny)
-        h0 = jnp.minimum(h0, controller.dtmax)
+        if h0 is None:
+            h0 = initial_step(symplectic_field(H_bound), z0, m, controller, t1 - t0)
+        h0 = jnp.clip(h0, controller.dtmin, controller.dtmax)
         options = dataclasses.replace(options, varying_steps=True, short_lived_matrices=True)
     elif clock is not None:
         rule, memory = _transform_rule(s, clock, view, tiny)
@@ -202,9 +261,9 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     else:
         count = element_count(t0, t1, h0)
         rule, memory = _constant_rule(t0, h0, count), {}
-    g = None if event is None else (lambda t, z: event.g(t, *view(z)))
-    c = _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, event, g, observe, acc0, estimate,
-                       every)
+    gs = None if events is None else tuple(lambda t, z, g=event.g: g(t, *view(z)) for event in events)
+    c = _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, events, gs, observe, acc0,
+                       estimate, every)
     c.update(memory)
     if s is not None:
         s0 = s(*view(z0))
@@ -241,11 +300,14 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         new = dict(c, matrix=matrix, h=jnp.where(active, verdict["h_next"], c["h"]),
                    **jax.tree.map(lambda a, b: jnp.where(active, a, b), verdict["memory"], {k: c[k] for k in memory}))
         end = dict(z=z1, comp=comp, t=verdict["t_b"], z_prev=z, Z_prev=Z, h_prev=h)
-        if event is not None:
-            fields, (hit, t_ev, at) = _event_update(event, g, c, dict(step, t_b=verdict["t_b"]), accept, clock)
-            new.update(fields)
-            if event.terminal:
-                stop = dict(end, z=at, comp=jnp.zeros_like(comp), t=t_ev)
+        if events is not None:
+            fields, (alpha_stop, ended) = _events_update(events, gs, c, dict(step, t_b=verdict["t_b"]), accept, clock)
+            new.update(fields, ended=jnp.where(accept, ended, c["ended"]))
+            if any(event.terminal for event in events):
+                hit = accept & (ended >= 0)
+                at = jnp.where(hit, alpha_stop, 0.0)
+                stop = dict(end, z=_output.on_polynomial(z, W, at[None])[0], comp=jnp.zeros_like(comp),
+                            t=_output.time_at(z, W, at, t, h, clock))
                 end = jax.tree.map(lambda a, b: jnp.where(hit, a, b), stop, end)
                 finished = finished | hit
         if ts is not None:  # a rejected step writes nothing: its end time is -inf
@@ -258,6 +320,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         if dense:
             new["node_t"] = c["node_t"].at[n + 1].set(end["t"], mode="drop")
             new["node_z"] = c["node_z"].at[n + 1].set(end["z"], mode="drop")
+        if dense is True:
             new["W"] = c["W"].at[n].set(W, mode="drop")
         local = jnp.nan
         if estimate == "full":

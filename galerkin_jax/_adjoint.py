@@ -51,7 +51,8 @@ class Spec:
         H: the user's Hamiltonian, unbound.
         transform: the ``TimeTransform`` (its s is static) or None.
         options: the root finder's ``Options``.
-        max_steps, dense, event, estimate: as ``_adaptive.run`` takes them.
+        max_steps, dense, events, estimate: as ``_adaptive.run`` takes them (events: a tuple;
+            dense: True, or "nodes" for the node states alone).
         observe, acc0: a sweep's diagnostics, ``observe(acc, q, p)`` folded over the accepted
             nodes from ``acc0(q0, p0, args)``; or None.
     """
@@ -61,7 +62,7 @@ class Spec:
     options: Options
     max_steps: int
     dense: bool = False
-    event: object = None
+    events: object = None
     estimate: object = False
     observe: object = None
     acc0: object = None
@@ -214,10 +215,10 @@ def _forward(spec, inputs, every):
     controller = inputs["controller"] if spec.transform is None else spec.transform
     c = _adaptive.run(inputs["method"], fn, *jnp.split(z0, 2), inputs["t0"], inputs["t1"], inputs["h"], run_args,
                       controller, options=spec.options, max_steps=spec.max_steps, ts=inputs["ts"], dense=spec.dense,
-                      event=spec.event, estimate=spec.estimate, clock=clock, s=s, observe=spec.observe, acc0=acc0,
+                      events=spec.events, estimate=spec.estimate, clock=clock, s=s, observe=spec.observe, acc0=acc0,
                       every=every)
     keep = ("z", "t", "status", "steps", "rejected", "attempts", "total", "most", "trips", "lenient", "h_min", "h_max",
-            "estimate", "hs", "ev_t", "ev_z", "ev_n", "ev_alpha", "ev_count", "node_t", "node_z", "W", "acc",
+            "estimate", "hs", "ev_t", "ev_z", "ev_n", "ev_alpha", "ev_count", "ended", "node_t", "node_z", "W", "acc",
             "checkpoints")
     out = {k: c[k] for k in keep if k in c}
     if inputs["ts"] is not None:
@@ -328,10 +329,19 @@ def _timing(inputs, c, n, t_n, landed, t0, t1, h):
 
 
 def _terminated(spec, c):
-    """The run ended at a terminal event (its row 0)."""
-    if spec.event is None or not spec.event.terminal:
+    """The run ended at a terminal event (row 0 of event ``c["ended"]``)."""
+    if not _terminal(spec):
         return jnp.zeros((), bool)
-    return c["ev_count"] > 0
+    return c["ended"] >= 0
+
+
+def _terminal(spec):
+    return spec.events is not None and any(event.terminal for event in spec.events)
+
+
+def _at_end(c, rows):
+    """Row 0 of the event that ended the run, from per-event ``rows``."""
+    return sum(jnp.where(c["ended"] == k, row[0], 0.0) for k, row in enumerate(rows))
 
 
 def _landed(spec, c, n):
@@ -348,13 +358,18 @@ def _places(c):
         alphas == 1.0, 1, 0))
 
 
+def _replace(rows, k, row):
+    """The tuple ``rows`` with row k replaced."""
+    return rows[:k] + (row,) + rows[k + 1:]
+
+
 def _range(n, elements):
     """``[lo, hi)``, where the sorted ``elements`` equal n."""
     return jnp.searchsorted(elements, n, side="left"), jnp.searchsorted(elements, n, side="right")
 
 
-def _event_elements(spec, c):
-    return jnp.where(c["ev_n"] < 0, spec.max_steps + 1, c["ev_n"])
+def _event_elements(spec, c, k):
+    return jnp.where(c["ev_n"][k] < 0, spec.max_steps + 1, c["ev_n"][k])
 
 
 def _resolve_options(spec, inputs):
@@ -399,7 +414,7 @@ def _tangent_sweep(spec, inputs, c, d):
     times, d_times = tuple(inputs[k] for k in ("t0", "t1", "h")), tuple(d[k] for k in ("t0", "t1", "h"))
     options = _resolve_options(spec, inputs)
     dtype = z0.dtype
-    out = {k: jnp.zeros_like(c[k]) for k in DIFFERENTIABLE if k in c and k != "acc"}
+    out = {k: jax.tree.map(jnp.zeros_like, c[k]) for k in DIFFERENTIABLE if k in c and k != "acc"}
     acc = d_acc = None
     if spec.observe is not None:
         acc, d_acc = jax.jvp(spec.acc0, primal[:3], tuple(d[k] for k in ("q0", "p0", "args")))
@@ -424,18 +439,20 @@ def _tangent_sweep(spec, inputs, c, d):
                 return saved.at[i].set(d_value)
 
             out = dict(out, saved=jax.lax.fori_loop(*_range(n, elements), save, out["saved"]))
-        if spec.event is not None:
-            def event(i, out):
-                _, (dt, dz_event) = jax.jvp(lambda z, W, start, h: _event(spec.event.g, clock, view, z, W, start, h,
-                                                                          c["ev_alpha"][i]),
+        for k, spec_event in enumerate(spec.events or ()):
+            def event(i, rows, k=k, g=spec_event.g):
+                _, (dt, dz_event) = jax.jvp(lambda z, W, start, h: _event(g, clock, view, z, W, start, h,
+                                                                          c["ev_alpha"][k][i]),
                                             (z, W, start, h), (dz, dW, d_start, dh))
-                return dict(out, ev_t=out["ev_t"].at[i].set(dt), ev_z=out["ev_z"].at[i].set(dz_event))
+                return rows[0].at[i].set(dt), rows[1].at[i].set(dz_event)
 
-            out = jax.lax.fori_loop(*_range(n, _event_elements(spec, c)), event, out)
+            rows = jax.lax.fori_loop(*_range(n, _event_elements(spec, c, k)), event, (out["ev_t"][k], out["ev_z"][k]))
+            out = dict(out, ev_t=_replace(out["ev_t"], k, rows[0]), ev_z=_replace(out["ev_z"], k, rows[1]))
         if spec.dense:
             d_end = d_start + dh if clock is None else dz1[clock]
-            out = dict(out, node_z=out["node_z"].at[n + 1].set(dz1), W=out["W"].at[n].set(dW),
-                       node_t=out["node_t"].at[n + 1].set(d_end))
+            out = dict(out, node_z=out["node_z"].at[n + 1].set(dz1), node_t=out["node_t"].at[n + 1].set(d_end))
+            if spec.dense is True:
+                out["W"] = out["W"].at[n].set(dW)
         if spec.observe is not None:
             acc, d_acc = jax.jvp(lambda a, z1: spec.observe(a, *view(z1)), (acc, z1), (d_acc, dz1))
         t_next = t_n + element.h_n if clock is None else z1[clock]
@@ -449,9 +466,9 @@ def _tangent_sweep(spec, inputs, c, d):
     terminated = _terminated(spec, c)
     out["z"] = dz
     out["t"] = jnp.asarray(d["t1"], dtype)
-    if spec.event is not None and spec.event.terminal:
-        out["z"] = jnp.where(terminated, out["ev_z"][0], dz)
-        out["t"] = jnp.where(terminated, out["ev_t"][0], out["t"])
+    if _terminal(spec):
+        out["z"] = jnp.where(terminated, _at_end(c, out["ev_z"]), dz)
+        out["t"] = jnp.where(terminated, _at_end(c, out["ev_t"]), out["t"])
         if spec.dense:
             out["node_z"] = out["node_z"].at[c["steps"]].set(out["z"])
             out["node_t"] = out["node_t"].at[c["steps"]].set(out["t"])
@@ -478,13 +495,15 @@ def _adjoint_sweep(spec, inputs, c, ct):
     terminated = _terminated(spec, c)
     lam = jnp.where(terminated, 0.0, ct["z"])
     times_bar = (jnp.zeros((), dtype), jnp.where(terminated, 0.0, ct["t"]).astype(dtype), jnp.zeros((), dtype))
-    if spec.event is not None:
-        ev_t_bar, ev_z_bar = ct["ev_t"], ct["ev_z"]
-        if spec.event.terminal:
+    if spec.events is not None:
+        ev_t_bar, ev_z_bar = list(ct["ev_t"]), list(ct["ev_z"])
+        if _terminal(spec):
             node_z_bar = ct["node_z"][steps] if spec.dense else 0.0
             node_t_bar = ct["node_t"][steps] if spec.dense else 0.0
-            ev_z_bar = ev_z_bar.at[0].add(jnp.where(terminated, ct["z"] + node_z_bar, 0.0))
-            ev_t_bar = ev_t_bar.at[0].add(jnp.where(terminated, ct["t"] + node_t_bar, 0.0))
+            for k in range(len(spec.events)):
+                ended = terminated & (c["ended"] == k)
+                ev_z_bar[k] = ev_z_bar[k].at[0].add(jnp.where(ended, ct["z"] + node_z_bar, 0.0))
+                ev_t_bar[k] = ev_t_bar[k].at[0].add(jnp.where(ended, ct["t"] + node_t_bar, 0.0))
     if spec.dense:
         lam = lam + jnp.where(terminated, 0.0, ct["node_z"][steps])
     acc_bar = ct.get("acc")
@@ -526,8 +545,9 @@ def _adjoint_sweep(spec, inputs, c, ct):
             if spec.observe is not None:
                 acc_bar, z1_bar = jax.vjp(lambda a, z1: spec.observe(a, *view(z1)), acc, z1)[1](acc_bar)
                 local["z1"] = local["z1"] + z1_bar
-            if spec.dense:
+            if spec.dense is True:
                 local["W"] = ct["W"][n]
+            if spec.dense:
                 if clock is None:  # node n + 1's time is t_n + h_n
                     local["start"], local["h"] = ct["node_t"][n + 1], ct["node_t"][n + 1]
                 else:
@@ -542,15 +562,15 @@ def _adjoint_sweep(spec, inputs, c, ct):
                                 h=local["h"] + hb, ts=local["ts"].at[i].add(tsb))
 
                 local = jax.lax.fori_loop(*_range(n, elements), save, local)
-            if spec.event is not None:
-                def event(i, local):
-                    _, event_vjp = jax.vjp(lambda z, W, start, h: _event(spec.event.g, clock, view, z, W, start, h,
-                                                                         c["ev_alpha"][i]), z, W, start, h)
-                    zb, Wb, sb, hb = event_vjp((ev_t_bar[i], ev_z_bar[i]))
+            for k, spec_event in enumerate(spec.events or ()):
+                def event(i, local, k=k, g=spec_event.g):
+                    _, event_vjp = jax.vjp(lambda z, W, start, h: _event(g, clock, view, z, W, start, h,
+                                                                         c["ev_alpha"][k][i]), z, W, start, h)
+                    zb, Wb, sb, hb = event_vjp((ev_t_bar[k][i], ev_z_bar[k][i]))
                     return dict(local, z=local["z"] + zb, W=local["W"] + Wb, start=local["start"] + sb,
                                 h=local["h"] + hb)
 
-                local = jax.lax.fori_loop(*_range(n, _event_elements(spec, c)), event, local)
+                local = jax.lax.fori_loop(*_range(n, _event_elements(spec, c, k)), event, local)
             theta_b, z_b, *t_b = element_vjp((local["z1"], local["W"], local["start"], local["h"]))
             lam = local["z"] + z_b + (ct["node_z"][n] if spec.dense else 0.0)
             theta_bar = _add(theta_bar, theta_b)

@@ -240,7 +240,7 @@ def step_range(solution):
     """``(smallest, largest)`` step in t of a run whose saved states are its steps' ends (one
     state more than steps), else None (states between the steps: the steps are not known)."""
     t = np.asarray(solution.t)
-    if len(t) != int(solution.stats["num_steps"]) + 1 or len(t) < 2:
+    if len(t) != int(solution.stats["num_accepted_steps"]) + 1 or len(t) < 2:
         return None
     steps = np.diff(t)
     return float(np.min(steps)), float(np.max(steps))
@@ -251,7 +251,7 @@ def with_step_rule(text, solution, rule, controller=None):
     accepted and rejected steps and the smallest and largest h (under the time transformation
     h in tau, and the steps in t where the saved states are the steps' ends)."""
     stats = solution.stats
-    line = (f"{'control':<9}{rule}: {int(stats['num_steps'])} steps, {int(stats['num_rejected_steps'])} rejected, "
+    line = (f"{'control':<9}{rule}: {int(stats['num_accepted_steps'])} steps, {int(stats['num_rejected_steps'])} rejected, "
             f"h from {float(stats['min_step']):.3g} to {float(stats['max_step']):.3g}")
     span = step_range(solution)
     if controller == "time-transform" and span is not None:
@@ -259,7 +259,7 @@ def with_step_rule(text, solution, rule, controller=None):
     lines = text.split("\n")
     at = next((i for i, l in enumerate(lines) if l.startswith("steps")), 0)
     t = np.asarray(solution.t)
-    saved = f"{len(t)} states saved" + ("" if len(t) == int(stats["num_steps"]) + 1 else
+    saved = f"{len(t)} states saved" + ("" if len(t) == int(stats["num_accepted_steps"]) + 1 else
                                         " (between the steps, from the element polynomials)")
-    steps = f"{'steps':<9}{int(stats['num_steps'])} steps, t = {t[0]:g} .. {t[-1]:g}; {saved}"
+    steps = f"{'steps':<9}{int(stats['num_accepted_steps'])} steps, t = {t[0]:g} .. {t[-1]:g}; {saved}"
     return "\n".join(lines[:at] + [steps, line] + lines[at + 1:])

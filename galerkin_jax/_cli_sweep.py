@@ -70,7 +70,7 @@ def rows(group, hs, scales, result, n_steps):
         if final is not None:
             row["final error"] = float(final[i])
         row["error estimate"] = float(estimate[i])
-        steps = n_steps if result.num_steps is None else max(1, int(result.num_steps[i]))
+        steps = n_steps if result.num_accepted_steps is None else max(1, int(result.num_accepted_steps[i]))
         row["Newton per step"] = round(int(result.num_newton_iterations[i]) / steps, 2)
         row["max Newton"] = int(result.max_newton_iterations[i])
         table.append(row)

@@ -249,12 +249,14 @@ class Events:
         p: the momenta, likewise.
         count: the number of events found (may exceed the capacity: the later ones are counted,
             not stored).
+        ended: this event ended the run (a terminal event's first crossing).
     """
 
     t: jax.Array
     q: jax.Array
     p: jax.Array
     count: jax.Array
+    ended: jax.Array
 
 
 def embedded_error(H, q0, p0, W, h):

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _adjoint, _checks, _output, _shape, _span
-from ._controllers import Events, TimeTransform
+from ._controllers import Event, Events, PIDController, TimeTransform
 
 from ._march import (bind_args, input_status, march, nan_if_failed, reserved_to_t1, short_of_t1, solve_element,
                      solver_options)
@@ -31,7 +31,9 @@ class Solution:
             ``save_at``, ``[t0, t_end]``.
         q: the positions at ``t``, of shape ``(m,) + shape`` for states of that shape
             (``(m, d)`` for 1-D states; a pytree state: its leaves with the leading axis m).
-            After the first failure the states are NaN.
+            After the first failure the states are NaN; a run stopped by ``max_steps`` or
+            ``dtmin`` (status MAX_STEPS, DTMIN) keeps the time and state where it stopped, its
+            later save times NaN.
         p: the momenta at ``t``, likewise.
         status: int32 ``Status`` code, 0 when every implicit solve converged. Status 0 promises
             converged solves, not accurate steps: read ``error_estimate`` for that.
@@ -39,14 +41,16 @@ class Solution:
             one element), ``batch_newton_iterations`` (the iterations the batch ran: under
             ``vmap`` each element waits for the batch's slowest member), ``num_accepted_stalled``
             (elements accepted other than at round-off: their updates stopped shrinking with the
-            residual below sqrt(eps) of the state, see ``Status``), ``num_steps`` (accepted
-            elements), ``num_rejected_steps``, ``min_step`` and ``max_step`` (the smallest and
+            residual below sqrt(eps) of the state, see ``Status``), as in diffrax
+            ``num_steps`` (every attempt), ``num_accepted_steps`` (the elements of the run) and
+            ``num_rejected_steps`` (fixed steps reject none), ``min_step`` and ``max_step`` (the smallest and
             largest accepted h; of a time-transformed run, in tau; of fixed steps h, where the
             last element to t1 may be shorter).
         error_estimate: the largest estimated local (one-element) error of the run, max-norm
             over (q, p), shape (); NaN for a failed run and for ``LagrangianVI``.
         dense: ``DenseOutput`` with ``integrate(..., dense=True)``, else None.
-        events: ``Events`` with ``integrate(..., events=)``, else None.
+        events: ``Events`` with ``integrate(..., events=Event(...))`` (a list of them for a list of
+            events), else None.
         layout: static; the layout of a state that is not one 1-D array (``_shape.Layout``),
             else None.
     """
@@ -80,7 +84,7 @@ class Solution:
             raise ValueError(f"t must be a scalar or 1-D, got shape {t.shape}.")
         bounds = (dense.t[0], dense.t1)
         if not any(isinstance(x, jax.core.Tracer) for x in (t, *bounds)):
-            lo, hi = (float(b) for b in bounds)
+            lo, hi = sorted(float(b) for b in bounds)
             if not bool(jnp.all((t >= lo) & (t <= hi))):
                 raise ValueError(f"t must lie in [t0, t1] = [{lo}, {hi}], got values outside.")
         q, p = dense.view(_evaluate(dense, jnp.atleast_1d(t)))
@@ -97,11 +101,12 @@ def prepare(H, q0, p0, method, h, args):
     _checks.check_function(H)
     _checks.check_method(method)
     q0, p0 = _checks.check_state(q0, p0)
-    _checks.check_step_size(h)
+    if h is not None:
+        _checks.check_step_size(h)
     fn = bind_args(H, args)
     _checks.check_scalar_output(fn, q0, p0)
     _checks.check_premise(method, fn, q0, p0)
-    return q0, p0, jnp.asarray(h, q0.dtype)
+    return q0, p0, None if h is None else jnp.asarray(h, q0.dtype)
 
 
 @_shape.on_step
@@ -147,7 +152,7 @@ def integrate(
     p0,
     *,
     method,
-    h,
+    h=None,
     n_steps=None,
     t0=0.0,
     t1=None,
@@ -190,8 +195,12 @@ def integrate(
         max_steps: static cap on a controller's attempts (accepted and rejected; default
             4096); with fixed steps to a traced ``t1`` or ``h``, the elements the scan reserves.
         save_at: sorted times in [t0, t1] at which to save the state (from the element
-            polynomials between nodes); ``Solution.t`` is then ``save_at``.
-        events: an ``Event``: sign changes of g(t, q, p), located on the element polynomials.
+            polynomials between nodes); ``Solution.t`` is then ``save_at``. ``"steps"``: every
+            accepted node, in the user's shapes (a controller's run: ``max_steps + 1`` rows,
+            t = inf and NaN states past the last node; ``num_accepted_steps + 1`` of them hold
+            nodes).
+        events: an ``Event`` or a list of them: every sign change of each g(t, q, p), located on the
+            element polynomials (``Solution.events``: an ``Events``, or a list of them).
         args: pytree passed to ``H`` as third argument; may be traced.
         save_every: store every ``save_every``-th state of a fixed-step run of ``n_steps``. Static.
         max_newton_iterations: iteration cap per element, a shorthand for
@@ -226,14 +235,53 @@ def integrate(
     q0, p0, h = prepare(H, q0, p0, method, h, args)
     _span.check_span(n_steps, t0, t1, controller)
     _span.check_controller(controller, method)
+    if h is None and not isinstance(controller, PIDController):
+        raise ValueError("h=None picks the first step of a PIDController's run; fixed steps and a TimeTransform "
+                         "need h.")
     options = solver_options(method, max_newton_iterations, krylov, solver)
-    t0 = jnp.asarray(t0, q0.dtype)
     estimate = _span.check_estimate(error_estimate)
-    sol = _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps, save_at, events, save_every,
-                    options, (checkpoint, bool(dense), bool(progress), estimate))
+    flags = (checkpoint, bool(dense), bool(progress), estimate)
+    single = isinstance(events, Event)
+    events = _span.check_events(events, q0, p0, t0)
+    if t1 is not None and _span.concrete(t0, t1) and float(t1) < float(t0):
+        sol = _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_at, events, options, flags)
+    else:
+        sol = _dispatch(H, q0, p0, method, h, args, n_steps, jnp.asarray(t0, q0.dtype), t1, controller, max_steps,
+                        save_at, events, save_every, options, flags)
+    if single:
+        sol = dataclasses.replace(sol, events=sol.events[0])
     if throw:
         throw_if_failed(sol.status)
     return sol
+
+
+def _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_at, events, options, flags):
+    """A run from t0 back to t1 < t0: Hamilton's flow is reversible, and with s = -t,
+    dz/ds = J D(-H)(z), so it is the run of -H from -t0 to -t1 (save times and an event's g
+    mapped alike), its times negated back."""
+    if type(method).__name__ == "LagrangianVI":
+        raise ValueError("t1 < t0 (a run backwards in time) needs a Hamiltonian method; LagrangianVI is given L.")
+    flip = lambda x: None if x is None else -jnp.asarray(x, q0.dtype)
+    reversed_events = None if events is None else tuple(dataclasses.replace(e, g=_time_reversed_event(e.g))
+                                                         for e in events)
+    sol = _dispatch(_time_reversed(H), q0, p0, method, h, args, None, flip(t0), flip(t1), controller, max_steps,
+                    flip(save_at), reversed_events, 1, options, flags)
+    dense = None if sol.dense is None else dataclasses.replace(
+        sol.dense, t=-sol.dense.t, t_end=-sol.dense.t_end, t1=-sol.dense.t1, direction=-1)
+    events = None if sol.events is None else [dataclasses.replace(e, t=-e.t) for e in sol.events]
+    return dataclasses.replace(sol, t=-sol.t, dense=dense, events=events)
+
+
+@functools.lru_cache(maxsize=None)
+def _time_reversed(H):
+    """-H (one function per H, so that a run backwards compiles once)."""
+    return lambda q, p, *args: -H(q, p, *args)
+
+
+@functools.lru_cache(maxsize=None)
+def _time_reversed_event(g):
+    """g at the time -s of the reversed run's s."""
+    return lambda s, q, p: g(-s, q, p)
 
 
 def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps, save_at, events, save_every,
@@ -242,6 +290,9 @@ def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps
     whose steps are not known in advance (``_integrate_adaptive``)."""
     statics = (options, *flags)
     checkpoint, dense, progress, estimate = flags
+    nodes = _span.check_nodes(save_at, save_every)
+    if nodes:  # fixed steps save every node anyway
+        save_at, save_every = None, 1
     if n_steps is not None and save_at is None and events is None:
         _checks.check_counts(n_steps, save_every)
         return _integrate(H, q0, p0, method, h, args, t0, None, None, n_steps, save_every, *statics)
@@ -250,7 +301,6 @@ def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps
         t1 = t0 + n_steps * h
     t1 = jnp.asarray(t1, q0.dtype)
     ts = _span.check_save_at(save_at, t0, t1, q0.dtype)
-    _span.check_event(events, q0, p0, t0)
     concrete = _span.concrete(h, t0, t1)
     if max_steps is not None:
         _span.check_max_steps(max_steps)
@@ -266,7 +316,7 @@ def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps
     if max_steps is None:
         max_steps = _span.fixed_step_count(t0, t1, h)[0] if controller is None and concrete else DEFAULT_MAX_STEPS
     return _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options,
-                               dense, estimate)
+                               dense, estimate, nodes)
 
 
 def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
@@ -293,7 +343,8 @@ def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
         status=status,
         stats={"num_newton_iterations": final["total"], "max_newton_iterations": final["most"],
                "batch_newton_iterations": final["trips"], "num_accepted_stalled": final["lenient"],
-               "num_steps": final["steps"], "num_rejected_steps": jnp.zeros_like(final["steps"]),
+               "num_steps": final["steps"], "num_accepted_steps": final["steps"],
+               "num_rejected_steps": jnp.zeros_like(final["steps"]),
                "min_step": h, "max_step": h},
         error_estimate=final["estimate"],
         dense=dense,
@@ -318,35 +369,42 @@ def _integrate(H, q0, p0, method, h, args, t0, t1, h_last, n_steps, save_every, 
     return solution(final, saved, kept, q0, p0, h, save_every, t0, t_end)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14))
-def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, event, max_steps, options, dense, estimate):
+@functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14, 15))
+def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options, dense,
+                        estimate, nodes):
     """A run whose steps are not known in advance (``_adaptive.run``), with the derivatives of the
-    run that takes the same steps (``_adjoint``)."""
+    run that takes the same steps (``_adjoint``); ``nodes``: its saves are every accepted node
+    (``save_at="steps"``), padded with t = inf and NaN states to ``max_steps + 1``."""
     transform = controller if isinstance(controller, TimeTransform) else None
-    spec = _adjoint.Spec(H, transform, options, max_steps, dense=dense, event=event, estimate=estimate)
+    spec = _adjoint.Spec(H, transform, options, max_steps, dense=True if dense else ("nodes" if nodes else False),
+                         events=events, estimate=estimate)
     inputs = dict(q0=q0, p0=p0, args=args, method=method, controller=None if transform else controller, t0=t0,
                   t1=t1, ts=ts, h=h)
     c = _adjoint.run(spec, inputs)
     clock = None if transform is None else q0.shape[0]
     view = lambda z: _output.user_view(z, clock)
     status = c["status"]
+    # a run stopped by max_steps or dtmin keeps its state and time where it stopped
+    failed = jnp.where((status == Status.MAX_STEPS) | (status == Status.DTMIN), Status.SUCCESS, status)
     if ts is not None:
         t, (q, p) = ts, view(c["saved"])
+    elif nodes:
+        t, (q, p) = c["node_t"], view(c["node_z"])
     else:
-        q_end, p_end = view(nan_if_failed(c["z"], status))
+        q_end, p_end = view(nan_if_failed(c["z"], failed))
         t, q, p = jnp.stack([t0, c["t"]]), jnp.stack([q0, q_end]), jnp.stack([p0, p_end])
     dense_output = None
     if dense:
         dense_output = DenseOutput(t=c["node_t"], z=c["node_z"], W=c["W"], t_end=c["t"], t1=t1, clock=clock)
-    events = None
-    if event is not None:
-        eq, ep = view(c["ev_z"])
-        events = Events(t=c["ev_t"], q=eq, p=ep, count=c["ev_count"])
+    found = None
+    if events is not None:
+        found = [Events(t=t, q=view(z)[0], p=view(z)[1], count=c["ev_count"][k], ended=c["ended"] == k)
+                 for k, (t, z) in enumerate(zip(c["ev_t"], c["ev_z"]))]
     stats = {"num_newton_iterations": c["total"], "max_newton_iterations": c["most"],
-             "batch_newton_iterations": c["trips"], "num_accepted_stalled": c["lenient"], "num_steps": c["steps"],
-             "num_rejected_steps": c["rejected"], "min_step": c["h_min"], "max_step": c["h_max"]}
-    return Solution(t=t, q=q, p=p, status=status, stats=stats, error_estimate=nan_if_failed(c["estimate"], status),
-                    dense=dense_output, events=events)
+             "batch_newton_iterations": c["trips"], "num_accepted_stalled": c["lenient"], "num_steps": c["attempts"],
+             "num_accepted_steps": c["steps"], "num_rejected_steps": c["rejected"], "min_step": c["h_min"], "max_step": c["h_max"]}
+    return Solution(t=t, q=q, p=p, status=status, stats=stats, error_estimate=nan_if_failed(c["estimate"], failed),
+                    dense=dense_output, events=found)
 
 
 @_shape.on_amplification

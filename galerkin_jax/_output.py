@@ -115,6 +115,7 @@ class DenseOutput:
         t1: the end of the requested span.
         clock: static; None where alpha = (t - t_n) / h_n, else the index d of the time
             coordinate in z = (q, t, p, p_t) (a time-transformed run), dropped by ``view``.
+        direction: static; -1 for a run backwards in time (t1 < t0: its times decrease), else 1.
     """
 
     t: jax.Array
@@ -123,6 +124,7 @@ class DenseOutput:
     t_end: jax.Array
     t1: jax.Array
     clock: object = dataclasses.field(default=None, metadata=dict(static=True))
+    direction: int = dataclasses.field(default=1, metadata=dict(static=True))
 
     def view(self, z):
         """``(q, p)`` of states z (..., 2d) or, time-transformed, (..., 2d + 2)."""
@@ -138,7 +140,10 @@ def user_view(z, clock):
 
 
 def evaluate(dense, t):
-    """States at the times ``t`` (1-D) from ``dense``; NaN outside ``[t_0, t_end]``."""
+    """States at the times ``t`` (1-D) from ``dense``; NaN outside ``[t_0, t_end]`` (a run
+    backwards: in the run's own increasing time -t, where its elements were solved)."""
+    if dense.direction < 0:
+        dense, t = dataclasses.replace(dense, t=-dense.t, t_end=-dense.t_end, t1=-dense.t1, direction=1), -t
     N = dense.W.shape[0]
     starts = dense.t[:-1]
     n = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, N - 1)

@@ -25,7 +25,8 @@ def _scalar(name, x):
 
 
 def check_span(n_steps, t0, t1, controller):
-    """Exactly one of ``n_steps`` and ``t1``; ``t1 > t0``; a controller needs ``t1``."""
+    """Exactly one of ``n_steps`` and ``t1``; ``t1 != t0`` (t1 < t0 runs backwards); a controller
+    needs ``t1``."""
     if (n_steps is None) == (t1 is None):
         raise ValueError("Give exactly one of n_steps and t1 (the end time).")
     _scalar("t0", t0)
@@ -36,8 +37,8 @@ def check_span(n_steps, t0, t1, controller):
             raise ValueError("A controller chooses the steps: give t1 (the end time), not n_steps.")
     if t1 is not None:
         _scalar("t1", t1)
-        if concrete(t0, t1) and not float(t1) > float(t0):
-            raise ValueError(f"t1 must be greater than t0, got t0 = {float(t0)} and t1 = {float(t1)}.")
+        if concrete(t0, t1) and float(t1) == float(t0):
+            raise ValueError(f"t1 must differ from t0 (t1 < t0 runs backwards), got t0 = t1 = {float(t0)}.")
 
 
 def check_controller(controller, method, batch=None):
@@ -78,6 +79,19 @@ def check_max_steps(max_steps):
         raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}.")
 
 
+def check_nodes(save_at, save_every):
+    """``save_at="steps"`` (every node): True; a time array or None: False."""
+    if isinstance(save_at, str):
+        if save_at != "steps":
+            raise ValueError(f'save_at must be "steps" or an array of times, got {save_at!r}.')
+        if save_every != 1:
+            raise ValueError('save_at="steps" saves every node: leave save_every at 1.')
+        return True
+    if isinstance(save_at, (list, tuple)) and any(isinstance(x, str) for x in save_at):
+        raise ValueError('save_at is "steps" (every node) or an array of times, not both.')
+    return False
+
+
 def check_save_at(save_at, t0, t1, dtype):
     """``save_at`` as a 1-D array, sorted, in [t0, t1]; None stays None."""
     if save_at is None:
@@ -98,11 +112,22 @@ def check_save_at(save_at, t0, t1, dtype):
     return ts
 
 
+def check_events(events, q0, p0, t0):
+    """``events`` (an ``Event`` or a list of them) as a tuple, each checked; None stays None."""
+    if events is None:
+        return None
+    if isinstance(events, Event):
+        events = (events,)
+    if not isinstance(events, (list, tuple)) or not events:
+        raise TypeError(f"events must be a gj.Event or a non-empty list of them, got {type(events).__name__}.")
+    for event in events:
+        check_event(event, q0, p0, t0)
+    return tuple(events)
+
+
 def check_event(event, q0, p0, t0):
-    if event is None:
-        return
     if not isinstance(event, Event):
-        raise TypeError(f"events must be a gj.Event, got {type(event).__name__}.")
+        raise TypeError(f"events must be a gj.Event or a list of them, got {type(event).__name__}.")
     if not callable(event.g):
         raise TypeError(f"Event.g must be a callable g(t, q, p), got {type(event.g).__name__}.")
     if event.direction not in (-1, 0, 1):

@@ -47,7 +47,9 @@ class SweepResult:
             at an eighth of the cost).
         num_accepted_stalled: elements accepted other than at round-off
             (``Solution.stats``).
-        num_steps: accepted steps of each run.
+        num_steps: every attempt of each run, accepted or rejected (as in diffrax; fixed steps:
+            the elements).
+        num_accepted_steps: the accepted steps of each run.
         num_rejected_steps: rejected steps of each run.
         solution: a batched ``Solution`` when ``save_every`` was given, else None; its
             ``stats`` are the Newton counts above.
@@ -65,6 +67,7 @@ class SweepResult:
     batch_newton_iterations: jax.Array
     num_accepted_stalled: Any = None
     num_steps: Any = None
+    num_accepted_steps: Any = None
     num_rejected_steps: Any = None
     solution: Any = None
 
@@ -119,7 +122,8 @@ def _result(final, runs, invariants, reference):
         final_error=_final_error(final, reference),
         q=final["q"], p=final["p"], status=final["status"], error_estimate=final["estimate"],
         num_newton_iterations=final["total"], max_newton_iterations=final["most"],
-        batch_newton_iterations=final["trips"], num_accepted_stalled=final["lenient"], num_steps=final["steps"],
+        batch_newton_iterations=final["trips"], num_accepted_stalled=final["lenient"], num_steps=final.get("attempts", final["steps"]),
+        num_accepted_steps=final["steps"],
         num_rejected_steps=final["rejected"], solution=runs,
     )
 
@@ -162,7 +166,7 @@ def _run_adaptive(H, invariants, max_steps, options, estimate, configs, referenc
                                     ts=None, h=h))
         q, p = user_view(nan_if_failed(c["z"], c["status"]), None if transform is None else q0.shape[0])
         return dict(q=q, p=p, estimate=nan_if_failed(c["estimate"], c["status"]), acc=c["acc"],
-                    **{k: c[k] for k in ("status", "total", "most", "trips", "steps", "rejected", "lenient")})
+                    **{k: c[k] for k in ("status", "total", "most", "trips", "steps", "attempts", "rejected", "lenient")})
 
     c = configs
     final = jax.vmap(one)(c.method, c.q0, c.p0, c.h, c.args, None if transform else controller)

@@ -275,7 +275,7 @@ def run_command(options):
         progress=options.progress, krylov=options.krylov, **timing)
     solution, compile_s, run_s = timed(lambda h: integrate(h=h), np.asarray(h, _dtype()))
     if span is not None:
-        n_steps = int(solution.stats["num_steps"])
+        n_steps = int(solution.stats["num_accepted_steps"])
         solution = _nodes(solution, n_steps)
     energy, invariants = _observe(problem, solution)
     files = _write_run(problem, spec, solution, energy, invariants, h, n_steps, options, span)

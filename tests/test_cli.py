@@ -482,8 +482,8 @@ def test_the_file_names_and_the_plot_title_say_how_the_steps_were_chosen():
     assert cli.run_stem(problem, spec, None) == cli.run_stem(problem, spec, fixed_to_t1) == "kepler_cG3-gauss3"
     assert cli.run_stem(problem, spec, pid) == "kepler_cG3-gauss3_pid"
     assert cli.run_stem(problem, spec, tt) == "kepler_cG3-gauss3_time-transform"
-    nodes = SimpleNamespace(t=np.array([0.0, 0.05, 0.3, 0.32]), stats={"num_steps": 3})
-    between = SimpleNamespace(t=np.linspace(0.0, 0.32, 11), stats={"num_steps": 3})  # save_at: steps unknown
+    nodes = SimpleNamespace(t=np.array([0.0, 0.05, 0.3, 0.32]), stats={"num_accepted_steps": 3})
+    between = SimpleNamespace(t=np.linspace(0.0, 0.32, 11), stats={"num_accepted_steps": 3})  # save_at: steps unknown
     title = lambda span, solution: cli.plot_title(problem, spec, 0.05, span, solution)
     assert title(None, nodes) == "kepler, cG(3) Gauss-Legendre 3, h = 0.05"
     assert title(tt, nodes) == "kepler, cG(3) Gauss-Legendre 3\nh = 0.05 in tau, steps in t from 0.02 to 0.25"

@@ -125,7 +125,7 @@ def test_adaptive_steps_continue_the_last_element_over_the_next_ones_length(meth
     q0, p0 = jnp.asarray([0.0]), jnp.asarray([1.0])
     sol = gj.integrate(H, q0, p0, method=method, h=1e-3, t1=10.0,
                        controller=gj.PIDController(1e-8, 1e-8, factormax=3.0))
-    steps = int(sol.stats["num_steps"]) + int(sol.stats["num_rejected_steps"])
+    steps = int(sol.stats["num_accepted_steps"]) + int(sol.stats["num_rejected_steps"])
     assert int(sol.status) == 0 and steps >= 6
     assert int(sol.stats["num_newton_iterations"]) <= 2 * steps + 4
     np.testing.assert_allclose(sol.q[-1], q0 + 10.0 * p0 - 50.0, rtol=1e-12)

@@ -108,11 +108,11 @@ def test_fixed_steps_to_t1_within_their_reserve_end_at_t1_and_beyond_it_stop_wit
     exact_count = gj.integrate(H, q0, p0, method=method, h=0.01, t1=3.005)
     reserved = gj.integrate(H, q0, p0, method=method, h=0.01, t1=3.005, max_steps=400)
     assert int(reserved.status) == 0 and float(reserved.t[-1]) == 3.005
-    assert int(reserved.stats["num_steps"]) == int(exact_count.stats["num_steps"]) == 301
+    assert int(reserved.stats["num_accepted_steps"]) == int(exact_count.stats["num_accepted_steps"]) == 301
     np.testing.assert_allclose(reserved.q[-1], exact_count.q[-1], rtol=0, atol=1e-15)
     short = gj.integrate(H, q0, p0, method=method, h=0.01, t1=3.005, max_steps=200)
     full = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=200)
-    assert int(short.status) == gj.Status.MAX_STEPS and int(short.stats["num_steps"]) == 200
+    assert int(short.status) == gj.Status.MAX_STEPS and int(short.stats["num_accepted_steps"]) == 200
     np.testing.assert_allclose(float(short.t[-1]), 2.0, rtol=1e-15)
     np.testing.assert_array_equal(short.q[-1], full.q[-1])
 

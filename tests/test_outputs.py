@@ -1,0 +1,152 @@
+"""What a run gives back: save times, node states, events, the stop of a run short of t1, runs
+backwards, the first step a controller picks, and diffrax's counts and bounds."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import galerkin_jax as gj
+import helpers
+from galerkin_jax import _output
+
+H, Q0, P0 = helpers.kepler(0.9)
+CG4 = gj.CG(4, gj.gauss_legendre(4))
+TWO_PI = 2 * np.pi
+
+
+def test_fixed_steps_with_save_at_reach_t1_for_every_count_of_steps():
+    """h = 2 pi / n to t1 = 2 pi with save_at, n = 1 .. 1000 (one vmapped program): every run
+    takes exactly n elements and ends with status 0. Adding up the steps used to leave t a
+    sliver short of t1 after n of them, so that the run reserved for n failed with MAX_STEPS
+    (n = 100, 399, 400 among others)."""
+    n = jnp.arange(1, 1001)
+    oscillator = lambda q, p: 0.5 * (q @ q + p @ p)
+    run = lambda h: gj.integrate(oscillator, Q0, P0, method=gj.CG(1, gj.midpoint()), h=h, t1=TWO_PI, max_steps=1000,
+                                 save_at=jnp.array([np.pi, TWO_PI]), error_estimate=False)
+    sol = jax.vmap(run)(TWO_PI / n)
+    assert np.all(np.asarray(sol.status) == 0)
+    np.testing.assert_array_equal(sol.stats["num_accepted_steps"], n)
+
+
+def test_every_crossing_inside_an_element_is_found_in_order():
+    """g = sin(10 t) on Kepler e = 0.9, cG(8), PID 1e-8 over two orbits: 40 crossings, of which
+    the elements near apocentre hold two or three each. Every one is found, at k pi / 10 to
+    round-off (19 of the 40 when only the elements' ends were compared)."""
+    event = gj.Event(lambda t, q, p: jnp.sin(10.0 * t), capacity=64)
+    sol = gj.integrate(H, Q0, P0, method=gj.CG(8, gj.gauss_legendre(8)), h=0.1, t1=2 * TWO_PI - 0.05,
+                       controller=gj.PIDController(1e-8, 1e-8), events=event, save_at="steps")
+    count = int(sol.events.count)
+    assert count == 39
+    np.testing.assert_allclose(sol.events.t[:count], np.arange(1, count + 1) * np.pi / 10, rtol=0, atol=1e-13)
+    assert np.isnan(sol.events.t[count:]).all()
+    nodes = np.asarray(sol.t[: int(sol.stats["num_accepted_steps"]) + 1])
+    per_element = np.diff(np.floor(nodes * 10 / np.pi))
+    assert per_element.max() >= 2  # elements near apocentre hold two or three crossings
+
+
+def test_a_list_of_events_each_with_its_direction_capacity_and_which_one_ended_the_run():
+    """Three events: pericentre passages (q_y up through 0, not terminal, capacity 2), the
+    crossings of x = 0 (any direction) and a terminal one at q_y = -0.3 going down, which ends
+    the run at its time; the others stop counting there."""
+    events = [gj.Event(lambda t, q, p: q[1], direction=1, capacity=2),
+              gj.Event(lambda t, q, p: q[0], capacity=8),
+              gj.Event(lambda t, q, p: q[1] + 0.3, direction=-1, terminal=True)]
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=3 * TWO_PI, controller=gj.PIDController(1e-10, 1e-10),
+                       events=events)
+    pericentre, axis, stop = sol.events
+    assert [bool(e.ended) for e in sol.events] == [False, False, True]
+    assert int(stop.count) == 1 and float(sol.t[-1]) == float(stop.t[0])
+    np.testing.assert_allclose(sol.q[-1, 1], -0.3, atol=1e-13)
+    # before the stop (on the way back to the first pericentre, still at x < 0) x = 0 is crossed
+    # once, just after the start; the pericentre (t = 0, the start) not at all
+    assert int(axis.count) == 1 and int(pericentre.count) == 0
+    assert float(axis.t[0]) < float(stop.t[0])
+
+
+def test_locate_keeps_a_root_it_has_reached():
+    """A Newton step that lands on the root must stay there: with an open bracket the iteration
+    bisected away from it for the rest of its iterations, and returned alphas off by ~1e-7."""
+    f = lambda a: a - 0.3
+    alpha = _output.locate(f, jnp.zeros(()), jnp.ones(()), f(jnp.zeros(())), iterations=24)
+    assert float(alpha) == 0.3
+
+
+def test_a_run_stopped_short_keeps_its_state_and_its_later_save_times_are_nan():
+    pid = gj.PIDController(1e-10, 1e-10)
+    ts = jnp.linspace(0.0, TWO_PI, 5)
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.01, t1=TWO_PI, controller=pid, max_steps=60, save_at=ts)
+    assert int(sol.status) == gj.Status.MAX_STEPS
+    assert np.isfinite(sol.q[0]).all() and np.isnan(sol.q[-1]).all()
+    end = gj.integrate(H, Q0, P0, method=CG4, h=0.01, t1=TWO_PI, controller=pid, max_steps=60)
+    assert int(end.status) == gj.Status.MAX_STEPS and 0.0 < float(end.t[-1]) < TWO_PI
+    reference = gj.integrate(H, Q0, P0, method=CG4, h=0.01, t1=float(end.t[-1]), controller=pid)
+    np.testing.assert_allclose(end.q[-1], reference.q[-1], atol=1e-9)
+
+
+def test_diffrax_counts_and_the_step_bounds():
+    """``num_steps`` counts every attempt, ``num_accepted_steps`` and ``num_rejected_steps`` the
+    two kinds; dtmin and dtmax bound every step the controller proposes (the last, which lands
+    on t1, may be shorter), and a step rejected at dtmin ends the run there (DTMIN)."""
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=TWO_PI, controller=gj.PIDController(1e-8, 1e-8))
+    stats = {k: int(v) for k, v in sol.stats.items() if "steps" in k}
+    assert stats["num_steps"] == stats["num_accepted_steps"] + stats["num_rejected_steps"]
+    assert stats["num_rejected_steps"] > 0
+    bounded = gj.PIDController(1e-8, 1e-8, dtmin=0.0005, dtmax=0.05)
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=TWO_PI, controller=bounded, save_at="steps")
+    n = int(sol.stats["num_accepted_steps"])
+    steps = np.diff(np.asarray(sol.t[: n + 1]))
+    assert int(sol.status) == 0 and steps[:-1].min() >= 0.0005 and steps.max() <= 0.05 + 1e-15
+    sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=TWO_PI, controller=gj.PIDController(1e-8, 1e-8, dtmin=0.05))
+    assert int(sol.status) == gj.Status.DTMIN and np.isfinite(sol.q[-1]).all()
+
+
+def test_save_at_steps_gives_every_node_in_the_users_shapes():
+    """``save_at="steps"``: the accepted nodes (the dense output's), t = inf and NaN states past
+    them; a time-transformed run's in the user's (q, p), without its clock and p_t; fixed steps
+    the same as saving every element."""
+    for controller in (gj.PIDController(1e-8, 1e-8), gj.TimeTransform()):
+        sol = gj.integrate(H, Q0, P0, method=CG4, h=0.02, t1=TWO_PI, controller=controller, save_at="steps")
+        dense = gj.integrate(H, Q0, P0, method=CG4, h=0.02, t1=TWO_PI, controller=controller, dense=True)
+        n = int(sol.stats["num_accepted_steps"])
+        assert sol.q.shape == (sol.t.shape[0], 2) and float(sol.t[n]) == TWO_PI and np.isinf(sol.t[n + 1:]).all()
+        np.testing.assert_array_equal(sol.t[: n + 1], dense.dense.t[: n + 1])
+        np.testing.assert_array_equal(sol.q[: n + 1], dense.dense.view(dense.dense.z[: n + 1])[0])
+    fixed = gj.integrate(H, Q0, P0, method=CG4, h=0.05, n_steps=20, save_at="steps")
+    np.testing.assert_array_equal(fixed.q, gj.integrate(H, Q0, P0, method=CG4, h=0.05, n_steps=20).q)
+    with pytest.raises(ValueError, match="steps"):
+        gj.integrate(H, Q0, P0, method=CG4, h=0.05, t1=1.0, save_at="step")
+    with pytest.raises(ValueError, match="not both"):
+        gj.integrate(H, Q0, P0, method=CG4, h=0.05, t1=1.0, save_at=["steps", 0.5])
+
+
+@pytest.mark.parametrize("kind", ["fixed", "pid", "time-transform", "fixed, events"])
+def test_a_run_backwards_in_time_returns_to_the_start(kind):
+    """t1 < t0 integrates backwards (Hamilton's flow is reversible: -H forwards in -t): half an
+    orbit out and back again ends at the initial state to the runs' accuracy, with decreasing
+    times, and its dense output, saves and events in the user's time."""
+    kwargs = {"fixed": dict(h=0.005), "pid": dict(h=0.01, controller=gj.PIDController(1e-12, 1e-12)),
+              "time-transform": dict(h=0.02, controller=gj.TimeTransform()),
+              "fixed, events": dict(h=0.005, events=gj.Event(lambda t, q, p: q[1] - 0.3, capacity=4))}[kind]
+    out = gj.integrate(H, Q0, P0, method=gj.CG(6, gj.gauss_legendre(6)), t1=np.pi, **kwargs)
+    back = gj.integrate(H, out.q[-1], out.p[-1], method=gj.CG(6, gj.gauss_legendre(6)), t0=np.pi, t1=0.0,
+                        save_at=jnp.array([np.pi, 1.0, 0.0]), **kwargs)
+    assert int(back.status) == 0
+    np.testing.assert_array_equal(back.t, [np.pi, 1.0, 0.0])
+    np.testing.assert_allclose(back.q[-1], Q0, atol=1e-9)
+    np.testing.assert_allclose(back.q[1], helpers.kepler_exact(1.0, 0.9)[0], atol=1e-8)
+    if kind == "fixed, events":  # y = 0.3 twice on the way back, where the way out crossed it
+        assert int(back.events.count) == int(out.events.count) == 2
+        np.testing.assert_allclose(back.events.t[:2], out.events.t[1::-1], atol=1e-9)
+
+
+def test_a_controller_picks_its_first_step():
+    """h=None under a PIDController: Hairer, Norsett and Wanner's starting step (as diffrax's),
+    from the field at the start and one Euler step; the run succeeds, and the step is neither
+    rejected many times over nor far below what the controller settles on."""
+    sol = gj.integrate(H, Q0, P0, method=CG4, t1=TWO_PI, controller=gj.PIDController(1e-8, 1e-8), save_at="steps")
+    assert int(sol.status) == 0 and int(sol.stats["num_rejected_steps"]) <= 3
+    first = float(sol.t[1] - sol.t[0])
+    assert 0.1 * float(sol.stats["min_step"]) < first < 10 * float(sol.stats["max_step"])
+    with pytest.raises(ValueError, match="h=None"):
+        gj.integrate(H, Q0, P0, method=CG4, t1=1.0)
