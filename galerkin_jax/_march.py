@@ -70,9 +70,10 @@ def state_scale(z):
 
 def solver_options(method, max_iterations=None, krylov=None, solver=None):
     """The root finder's ``Options``: the ``SolverOptions`` of ``solver`` and its shorthands
-    (``_solve.solver_from``), and whether the method has a fixed point (a method without one,
-    dG(k >= 1), has Newton at every size: ``Options.fixed_point``)."""
-    return Options(solver_from(solver, max_iterations, krylov), method.fixed_point)
+    (``_solve.solver_from``), whether the method has a fixed point (a method without one,
+    dG(k >= 1), has Newton at every size: ``Options.fixed_point``) and its ``settle``."""
+    return Options(solver_from(solver, max_iterations, krylov), method.fixed_point,
+                   settle=getattr(method, "settle", 0))
 
 
 def reserved_to_t1(t0, t1, h, reserved):

@@ -55,10 +55,17 @@ class AbstractMethod(abc.ABC):
             point on a state of more than ``SolverOptions.sweep_dimension`` (8) degrees of freedom
             is then solved through the Gauss-Seidel sweep of the two halves, which contracts
             at the square of the plain rate (``_march.element_residual``).
+        settle: a Python int, 0 by default: the fixed-point updates, one residual each, that
+            an element the fixed-point iteration accepted takes after its polish. The stopping
+            rule leaves an iteration error below the round-off of ``Z`` that follows the
+            predictor's smooth miss: where a method conserves a quantity to a small fraction of
+            round-off a step, that error's part in it adds up over a long run.
+            ``DiscreteGradient`` takes 1 (docs/accuracy.md, "Round-off").
     """
 
     fixed_point = False
     partition_axis = None
+    settle = 0
 
     @abc.abstractmethod
     def initial_guess(self, q0, p0, previous=None, ratio=None):
