@@ -81,6 +81,9 @@ def check_speed(text):
 def check_tuning(text):
     # measured 27.0 after the 10 quick Adam steps (29 after 60): the first steps do most of it
     assert number(r"Kepler: loss reduced by ([\d.]+)x", text) > 10
+    # through a time-transformed run: measured 1372 after 30 steps and after the quick 5 (its best
+    # rule comes at the second step)
+    assert number(r"time-transformed Kepler: loss reduced by ([\d.]+)x", text) > 100
 
 
 def check_adaptive(text):
@@ -178,6 +181,7 @@ KEY_FIGURES = {
         Figure(rf"dG\(1\) rho: loss reduced by {FLOAT}x", rel=0.05),
         Figure(rf"rho at Omega = 0.1, 100: \[{FLOAT} ", rel=0.01),
         Figure(rf"rho at Omega = 0.1, 100: \[[\d.]+ {FLOAT}\]", rel=0.05),
+        Figure(rf"time-transformed Kepler: loss reduced by {FLOAT}x", rel=0.05),
     ],
     "06_adaptive.ipynb": [  # one size: the quick run is the committed one
         Figure(r"^PID +status (\d+)", quick=True),
