@@ -170,3 +170,9 @@ def diffrax_pid_counted(solver, max_steps=1_000_000):
         return run
 
     return make
+
+
+def versions():
+    """The versions of the peers and of NumPy, and whether JAX runs in float64 (a result file's record)."""
+    return {"diffrax": diffrax.__version__, "optimistix": optx.__version__, "scipy": scipy.__version__,
+            "numpy": np.__version__, "jax_enable_x64": bool(jax.config.jax_enable_x64)}

@@ -745,14 +745,6 @@ def gradient_costs(system, points=(3, 4, 6), calls=200):
 # ---------------------------------------------------------------- main
 
 
-def versions():
-    import optimistix
-    import scipy
-
-    return {"diffrax": diffrax.__version__, "optimistix": optimistix.__version__, "scipy": scipy.__version__,
-            "numpy": np.__version__, "jax_enable_x64": bool(jax.config.jax_enable_x64)}
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="small systems, short spans, a few solvers (minutes)")
@@ -798,7 +790,7 @@ def main():
               f"{' '.join(before['load_average'])} before, {' '.join(after['load_average'])} after.\n\n")
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{name}.md").write_text(header + markdown)
-    write(name, {"machine_before": before, "quick": options.quick, "versions": versions(), "saves": SAVES,
+    write(name, {"machine_before": before, "quick": options.quick, "versions": peers.versions(), "saves": SAVES,
                  "levels": list(LEVELS), "cap_s": cap_s, "total_s": total_s, "systems": results, "table": markdown})
     print(markdown)
     print(f"total {total_s / 60:.1f} min")

@@ -381,14 +381,6 @@ def plot(results, path):
         axes[-1].legend(fontsize=7, loc="best")
 
 
-def versions():
-    import optimistix
-    import scipy
-
-    return {"diffrax": diffrax.__version__, "optimistix": optimistix.__version__, "scipy": scipy.__version__,
-            "numpy": np.__version__, "jax_enable_x64": bool(jax.config.jax_enable_x64)}
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="smoke pass: thinner sweeps, one timed call, 1e4 long steps")
@@ -405,7 +397,7 @@ def main():
     if {"kepler", "quartic"} & set(results):
         plot(results, RESULTS / f"{name}_work_precision.png")
     (RESULTS / f"{name}.md").write_text(markdown)
-    write(name, {"machine_before": before, "quick": options.quick, "versions": versions(), **results, "table": markdown})
+    write(name, {"machine_before": before, "quick": options.quick, "versions": peers.versions(), **results, "table": markdown})
     print(markdown)
 
 
