@@ -135,27 +135,37 @@ def element_count(t0, t1, h):
 EVENT_SAMPLES = 16
 
 
-def _events_update(events, gs, c, step, accept, clock):
-    """Locate every sign change of each event's g on the accepted element's polynomial, in order:
-    g sampled at ``EVENT_SAMPLES`` sub-intervals (its ends: the nodes), each bracket that
-    changes sign in the event's direction refined by ``_output.locate``. A terminal event's first
-    crossing ends the run there; no later crossing of any event in the element counts.
-    Returns the carry's event fields and ``(alpha_stop, ended)``: where a terminal event ended
-    the run (inf: none did) and which (-1: none)."""
+def _event_crossings(events, gs, c, step, accept, clock):
+    """Each event's g sampled at ``EVENT_SAMPLES`` sub-intervals of the accepted element's
+    polynomial (its ends: the nodes): ``[(values, crossing, g_b)]``, ``crossing`` the
+    sub-intervals where g changes sign in the event's direction."""
     z, W, t, h = step["z"], step["W"], step["t"], step["h"]
-    dtype = z.dtype
-    alphas = jnp.linspace(0.0, 1.0, EVENT_SAMPLES + 1, dtype=dtype)
+    alphas = jnp.linspace(0.0, 1.0, EVENT_SAMPLES + 1, dtype=z.dtype)
     inner = _output.on_polynomial(z, W, alphas[1:-1])
     inner_t = jax.vmap(lambda a: _output.time_at(z, W, a, t, h, clock))(alphas[1:-1])
-    found = []
+    samples = []
     for event, g, g_a in zip(events, gs, c["g_a"]):
         g_b = g(step["t_b"], step["z1"])
         values = jnp.concatenate([g_a[None], jax.vmap(g)(inner_t, inner), g_b[None]])
-        crossing = accept & _crossing(event, values[:-1], values[1:])
-        f = lambda a: g(_output.time_at(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
+        samples.append((values, accept & _crossing(event, values[:-1], values[1:]), g_b))
+    return samples
 
-        def located(_):
-            roots = jax.vmap(lambda lo, hi, f_lo: _output.locate(f, lo, hi, f_lo))(alphas[:-1], alphas[1:], values[:-1])
+
+def _events_update(events, gs, c, step, accept, clock, samples, W):
+    """Locate every sign change ``samples`` found (``_event_crossings``), in order, on the
+    element's refined polynomial ``W`` (``_output.refined``) by ``_output.locate``. A terminal
+    event's first crossing ends the run there; no later crossing of any event in the element
+    counts. Returns the carry's event fields and ``(alpha_stop, ended)``: where a terminal event
+    ended the run (inf: none did) and which (-1: none)."""
+    z, t, h = step["z"], step["t"], step["h"]
+    dtype = z.dtype
+    alphas = jnp.linspace(0.0, 1.0, EVENT_SAMPLES + 1, dtype=dtype)
+    found = []
+    for event, g, (values, crossing, g_b) in zip(events, gs, samples):
+        f = lambda a, g=g: g(_output.time_at(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
+
+        def located(_, f=f, crossing=crossing):
+            roots = jax.vmap(lambda lo, hi: _output.locate(f, lo, hi, f(lo)))(alphas[:-1], alphas[1:])
             return jnp.where(crossing, roots, jnp.inf)
 
         roots = jax.lax.cond(jnp.any(crossing), located, lambda _: jnp.full(crossing.shape, jnp.inf, dtype), None)
@@ -200,7 +210,7 @@ def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, 
         c["node_t"] = jnp.full((max_steps + 1,), jnp.inf, dtype).at[0].set(t0)
         c["node_z"] = jnp.full((max_steps + 1,) + z0.shape, jnp.nan, dtype).at[0].set(z0)
     if dense is True:
-        c["W"] = jnp.zeros((max_steps, m) + z0.shape, dtype)
+        c["W"] = jnp.zeros((max_steps, _output.refined_size(m)) + z0.shape, dtype)
     if events is not None:
         shapes = [(event.capacity,) for event in events]
         c.update(g_a=tuple(g(t0, z0) for g in gs), ev_t=tuple(jnp.full(s, jnp.nan, dtype) for s in shapes),
@@ -300,20 +310,37 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         new = dict(c, matrix=matrix, h=jnp.where(active, verdict["h_next"], c["h"]),
                    **jax.tree.map(lambda a, b: jnp.where(active, a, b), verdict["memory"], {k: c[k] for k in memory}))
         end = dict(z=z1, comp=comp, t=verdict["t_b"], z_prev=z, Z_prev=Z, h_prev=h)
+        # between the nodes the element's polynomial refined to the nodes' accuracy, where a
+        # save time or an event lies in the element (every element for dense output)
+        step = dict(step, t_b=verdict["t_b"])
+        samples = None if events is None else _event_crossings(events, gs, c, step, accept, clock)
+        W_fine = None
+        if dense is True or ts is not None or events is not None:
+            refine = lambda _: _output.refined(method, H_bound, z, z1, W, h)
+            if dense is True:
+                W_fine = refine(None)
+            else:
+                wanted = jnp.zeros((), bool)
+                if ts is not None:
+                    wanted = (c["index"] < ts.shape[0]) & (ts[jnp.minimum(c["index"], ts.shape[0] - 1)] <= verdict["t_b"])
+                if events is not None:
+                    wanted = wanted | jnp.any(jnp.stack([jnp.any(crossing) for _, crossing, _ in samples]))
+                coarse = lambda _: jnp.concatenate([W, jnp.zeros((_output.refined_size(m) - m,) + W.shape[1:], dtype)])
+                W_fine = jax.lax.cond(accept & wanted, refine, coarse, None)
         if events is not None:
-            fields, (alpha_stop, ended) = _events_update(events, gs, c, dict(step, t_b=verdict["t_b"]), accept, clock)
+            fields, (alpha_stop, ended) = _events_update(events, gs, c, step, accept, clock, samples, W_fine)
             new.update(fields, ended=jnp.where(accept, ended, c["ended"]))
             if any(event.terminal for event in events):
                 hit = accept & (ended >= 0)
                 at = jnp.where(hit, alpha_stop, 0.0)
-                stop = dict(end, z=_output.on_polynomial(z, W, at[None])[0], comp=jnp.zeros_like(comp),
-                            t=_output.time_at(z, W, at, t, h, clock))
+                stop = dict(end, z=_output.on_polynomial(z, W_fine, at[None])[0], comp=jnp.zeros_like(comp),
+                            t=_output.time_at(z, W_fine, at, t, h, clock))
                 end = jax.tree.map(lambda a, b: jnp.where(hit, a, b), stop, end)
                 finished = finished | hit
         if ts is not None:  # a rejected step writes nothing: its end time is -inf
             t_end = jnp.where(accept, end["t"], -jnp.inf)
-            new["saved"], new["index"] = _output.fill_saves(c["saved"], c["index"], ts, (z, W, t, t_end, h, clock),
-                                                            end["z"], c["steps"])
+            new["saved"], new["index"] = _output.fill_saves(c["saved"], c["index"], ts,
+                                                            (z, W_fine, t, t_end, h, clock), end["z"], c["steps"])
         # written in place; a rejected step's index lies past the buffers
         n = jnp.where(accept, c["steps"], max_steps + 1)
         new["hs"] = c["hs"].at[n].set(h, mode="drop")
@@ -321,7 +348,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             new["node_t"] = c["node_t"].at[n + 1].set(end["t"], mode="drop")
             new["node_z"] = c["node_z"].at[n + 1].set(end["z"], mode="drop")
         if dense is True:
-            new["W"] = c["W"].at[n].set(W, mode="drop")
+            new["W"] = c["W"].at[n].set(W_fine, mode="drop")
         local = jnp.nan
         if estimate == "full":
             frozen = jax.lax.stop_gradient((q, p, Z, h, args))

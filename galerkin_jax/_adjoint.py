@@ -381,9 +381,9 @@ def _resolve_options(spec, inputs):
 
 
 class _Element:
-    """Element n of a run as the sweeps differentiate it: ``args()`` its differentiable
-    arguments, ``outputs(*args)`` its end z_{n+1} and polynomial W (``_element``) and its
-    start time and length (``_timing``), and what it holds of the outputs (saves, events)."""
+    """Element n of a run as the sweeps differentiate it: ``outputs(theta, z, t0, t1, h)``, its
+    end z_{n+1}, its polynomial W (``_element``; refined where the run reads between the nodes,
+    as the forward run does) and its start time and length (``_timing``)."""
 
     def __init__(self, spec, fn, inputs, c, clock, n, t_n, Z):
         self.spec, self.fn, self.inputs, self.c, self.clock, self.n, self.t_n, self.Z = (
@@ -400,6 +400,9 @@ class _Element:
             length = jnp.where(self.landed, _landing(end_time, self.h_n, z, theta, t1, Z), self.h_n)
             start = z[clock]
         z1, W = _element(spec, fn, theta, z, length, Z)
+        if spec.dense is True or spec.events is not None or self.inputs["ts"] is not None:
+            # what the run read between the nodes: the refined polynomial (``_adaptive.run``)
+            W = _output.refined(theta[0], bind_args(fn, theta[1]), z, z1, W, length)
         return z1, W, start, length
 
 

@@ -61,11 +61,16 @@ class AbstractMethod(abc.ABC):
             predictor's smooth miss: where a method conserves a quantity to a small fraction of
             round-off a step, that error's part in it adds up over a long run.
             ``DiscreteGradient`` takes 1 (docs/accuracy.md, "Round-off").
+        hamiltonian: a Python bool, True by default: the function the method is given is a
+            Hamiltonian, whose field refines the element polynomial between the nodes (save
+            times, events, dense output: ``_output.refined``); False for a method given a
+            Lagrangian, whose polynomial is read as it is.
     """
 
     fixed_point = False
     partition_axis = None
     settle = 0
+    hamiltonian = True
 
     @abc.abstractmethod
     def initial_guess(self, q0, p0, previous=None, ratio=None):

@@ -12,8 +12,25 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from . import _basis
+from . import _basis, _interpolate
 from ._pytree import pytree_dataclass
+
+
+def refined(method, H_bound, z0, z1, W, h):
+    """The element polynomial ``W`` refined to the nodes' accuracy between them
+    (``_interpolate.refine`` at local order 2m - 1, m = W's coefficients: cG(k)'s 2k + 1), for
+    save times, events and dense output; a method given a Lagrangian: ``W`` as it is, padded to
+    the same shape. Returns ``(2m - 1, 2d)`` coefficients of the same form as W's."""
+    m = W.shape[0]
+    order = refined_size(m)
+    if not method.hamiltonian:
+        return jnp.concatenate([W, jnp.zeros((order - m,) + W.shape[1:], W.dtype)])
+    return _interpolate.refine(H_bound, z0, z1, W, h, order=order)
+
+
+def refined_size(m):
+    """The coefficients of ``refined`` for an element polynomial of m."""
+    return max(2 * m - 1, m + 1)
 
 
 def on_polynomial(z0, W, alpha):

@@ -115,6 +115,7 @@ class LagrangianVI(degree_and_rule("s", least=1)):
     # contracts only where its eigenvalues lie in (0, 2), and a preconditioner taken at one
     # state is off wherever the mass matrix depends on q or qdot. Newton (Newton-Krylov above
     # the dense limit) needs neither.
+    hamiltonian = False  # given L: its polynomial is read as it is between the nodes
     fixed_point = False
 
     def initial_guess(self, q0, p0, previous=None, ratio=None):
