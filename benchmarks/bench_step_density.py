@@ -6,7 +6,8 @@ eccentric orbits (docs/adaptive.md, "The default step density"):
 Kepler e = 0.9 and e = 0.99 from apocentre over 5 orbits, cG(6) + Gauss 6 with
 ``TimeTransform(s)`` at h = 0.8 and 0.4 in tau, for densities s = (N(z0) / N(z))^(3/4):
 
-* the default, N = |F| = (|dH/dq|^2 + |dH/dp|^2)^(1/2), Hamilton's field;
+* the default, N = |F| = (|dH/dq|^2 + |dH/dp|^2)^(1/2), Hamilton's field (with its cap
+  s <= 3, which from apocentre only scales s by at most 1.02 near pericentre);
 * N^2 = |dH/dq|^2 + lam |dH/dp|^2 for lam = 0.3, 0.1, 0.03 and 0 (the force alone);
 * Kepler's own s = (r / r0)^(3/2).
 
@@ -31,7 +32,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 import galerkin_jax as gj  # noqa: E402
 from _common import write  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
-from galerkin_jax._controllers import default_step_density, field_norm  # noqa: E402
+from galerkin_jax._controllers import default_step_density, field_scale  # noqa: E402
 
 H = scenes.kepler().H
 ORBITS = 5
@@ -70,7 +71,7 @@ def one(e, h, name):
     keep = np.isfinite(np.asarray(q[:, 0]))
     q, p = q[keep], p[keep]
     dH = np.asarray(jax.vmap(H)(q, p) - H(q0, p0))
-    s = default_step_density(H, field_norm(H, q0, p0)) if make is None else s_user
+    s = default_step_density(H, field_scale(H, q0, p0)) if make is None else s_user
     K = np.asarray(jax.vmap(s)(q, p)) * dH
     r = np.linalg.norm(np.asarray(q), axis=1)
     worst = int(np.argmax(np.abs(dH)))

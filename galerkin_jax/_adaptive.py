@@ -39,7 +39,7 @@ def problem(H, controller, q0, p0, t0, args):
     the Poincare-transformed problem on the extended state (``poincare``)."""
     if not isinstance(controller, TimeTransform):
         return H, q0, p0, args, None, None
-    K, q0, p0, args, s = poincare(H, controller.s, q0, p0, t0, args)
+    K, q0, p0, args, s = poincare(H, controller, q0, p0, t0, args)
     return K, q0, p0, args, s, q0.shape[0] - 1
 
 

@@ -127,8 +127,8 @@ COMMAND_WORDS = {
     gj.Status.MAX_STEPS: "The run reached --max-steps (accepted and rejected steps together) before its end time.",
     gj.Status.TIME_TRANSFORM: (
         "The time transformation's step density s(q, p) was not positive and finite at a state of the run: the "
-        "command's s, the default (|F(z0)| / |F(z)|)^(3/4) with F Hamilton's field, fails where F vanishes, at an "
-        "equilibrium (at the start or on the way)."
+        "command's s, the default (|F(z0)| / |F(z)|)^(3/4) with F Hamilton's field (at most 3 where F vanishes), "
+        "fails where F overflows, at a collision."
     ),
 }
 

@@ -177,23 +177,82 @@ def check_values(values, prefix):
                              f"dtmax = {_shown(dtmax, bad)}.")
 
 
-def default_step_density(H, F0):
-    """The default s(q, p) of ``TimeTransform``: ``(|F(z0)| / |F(z)|)^(3/4)`` with F = J DH
-    Hamilton's field, |.| its Euclidean norm and ``F0`` = |F(z0)|.
+S_MAX = 3.0  # the default density's largest value: docs/adaptive.md, "Where Hamilton's field vanishes"
 
-    Why: where one term of F dominates near a singularity, as the force 1/r^2 of a close
-    encounter, |F|^(-3/4) ~ r^(3/2), the dynamical time scale sqrt(r^3 / (G M)) over which
-    the orbit turns (Kepler's third law), so the steps follow the orbit's own time scale; and
-    s(z0) = 1, so h is the first step's length in t. Where it fails: at an equilibrium F = 0
-    (s = inf; the status reports it), and where |F|, which mixes the units of q' and p', does
-    not measure how fast the state turns (pass your own s there). Where it is weak: on an
-    eccentric orbit near apocentre, where |dH/dp| is small and changes fast, its share of |F|
-    makes s vary within a long step; the error of the transformed Hamiltonian made there is
-    divided by the small s of every pericentre. A density of the position alone (Kepler:
-    r^(3/2)) avoids that; the default keeps |dH/dp| so that s stays finite where the force
-    vanishes (docs/adaptive.md, "The default step density and your own").
+
+def default_step_density(H, u, s_max=S_MAX):
+    """The default s(q, p) of ``TimeTransform``: ``((1 + k^2) / (u |F(z)|^2 + k^2))^(3/8)`` with
+    F = J DH Hamilton's field, |.| its Euclidean norm, ``u`` = 1 / |F(z0)|^2 (``field_scale``) and
+    k^2 = 1 / (s_max^(8/3) - 1); s = 1 everywhere where ``u`` is 0 (a start at an equilibrium).
+
+    That is ``(|F(z0)| / |F(z)|)^(3/4)`` with |F| floored smoothly at k |F(z0)|: where |F| is
+    well above the floor, as on an eccentric orbit's way into its pericentre, the density is
+    (|F(z0)| / |F(z)|)^(3/4) to within a factor (1 + k^2)^(3/8) (1.02 for s_max = 3); where F
+    vanishes, s rises to ``s_max`` and stays finite; s(z0) = 1, so h is the first step's length
+    in t.
+
+    Why |F|^(-3/4): where one term of F dominates near a singularity, as the force 1/r^2 of a
+    close encounter, |F|^(-3/4) ~ r^(3/2), the dynamical time scale sqrt(r^3 / (G M)) over
+    which the orbit turns (Kepler's third law), so the steps follow the orbit's own time scale.
+
+    Why the cap: where F vanishes the unbounded density fails. At rest it is 0 / 0; near an
+    equilibrium the motion is slow but its time scale, that of the linearised flow, is not (a
+    pendulum's saddle: 1), and s makes steps many of these long (near the separatrix: steps 5.4
+    long in t, the run 0.63 rad off). The cap is relative to the first step because nothing the
+    start shows (|F(z0)|, 0 at rest; H's Hessian there; h) tells a saddle ahead from an
+    apocentre ahead, where |F| / |F(z0)| is as small (0.0032 on the pendulum's way from the
+    bottom to near its saddle, 0.0036 on Kepler e = 0.9's from pericentre to apocentre); a cap
+    from the linearised rate at every state tells them apart but costs 1.6-3x the time per step
+    (third derivatives of H in the residual). 3 by measurement: near the separatrix the largest
+    error is 6.9e-7 against 2.4 unbounded and 9.3e-4 with s = 1 at the same number of steps (at
+    5 and more it falls behind s = 1 at p0 = 1.99), and from apocentre Kepler takes 1.7-1.9 %
+    fewer steps with energy errors within their noise. The price falls on a run started at its
+    fastest point with a slow region to follow: Kepler from pericentre takes 7.1x the steps at
+    e = 0.9, 167x at e = 0.99; ``TimeTransform(s_max=inf)`` is the unbounded density
+    (docs/adaptive.md, "Where Hamilton's field vanishes").
+
+    Where it is weak: where |F|, which mixes the units of q' and p', does not measure how fast
+    the state turns (pass your own s there); and on an eccentric orbit near apocentre, where
+    |dH/dp| is small and changes fast, its share of |F| makes s vary within a long step; the
+    error of the transformed Hamiltonian made there is divided by the small s of every
+    pericentre. A density of the position alone (Kepler: r^(3/2)) avoids that; the default
+    keeps |dH/dp| so that s stays finite where the force vanishes (docs/adaptive.md, "The
+    default step density and your own").
     """
-    return lambda q, p: (F0 / field_norm(H, q, p)) ** 0.75
+    k2 = _floor_share(s_max)
+
+    def s(q, p):
+        active = u > 0
+        denominator = jnp.where(active, u * field_norm2(H, q, p) + k2, 1.0)
+        return (jnp.where(active, 1.0 + k2, 1.0) / denominator) ** 0.375
+
+    return s
+
+
+def _floor_share(s_max):
+    """k^2 of ``default_step_density``: s = ((1 + k^2) / k^2)^(3/8) = s_max where F = 0."""
+    if not s_max > 1:
+        raise ValueError(f"TimeTransform: s_max must be > 1, got {s_max!r}.")
+    return 0.0 if np.isinf(s_max) else 1.0 / (s_max ** (8 / 3) - 1.0)
+
+
+def field_scale(H, q0, p0):
+    """``u`` of ``default_step_density``: 1 / |F(z0)|^2, or 0 where the start is an equilibrium,
+    |F(z0)| at most 16 eps |D^2H(z0) z0|, the change of F from rounding z0 to the precision
+    (a pendulum at q0 = pi: |F(z0)| = |sin(pi)| = 1.2e-16, 16 eps pi = 1.1e-14): the run then has no
+    field to scale by, and s = 1 (steps h in t)."""
+    grad = jax.grad(H, argnums=(0, 1))
+    dH, hessian_z0 = jax.jvp(grad, (q0, p0), (q0, p0))
+    w0 = sum(jnp.sum(g * g) for g in dH)
+    eps = jnp.finfo(w0.dtype).eps
+    roundoff = jnp.maximum((16 * eps) ** 2 * sum(jnp.sum(g * g) for g in hessian_z0), jnp.finfo(w0.dtype).tiny)
+    still = w0 <= roundoff
+    return jnp.where(still, 0.0, 1.0 / jnp.where(still, 1.0, w0))
+
+
+def field_norm2(H, q, p):
+    """|J DH(q, p)|^2 = |DH(q, p)|^2, the squared Euclidean norm of Hamilton's field."""
+    return sum(jnp.sum(g * g) for g in jax.grad(H, argnums=(0, 1))(q, p))
 
 
 def field_norm(H, q, p):
@@ -210,16 +269,28 @@ class TimeTransform:
         s: ``s(q, p) -> scalar > 0``, the step density (small where the motion is fast), with
             q and p in the state's own shape, or ``s(q, p, args)`` when ``args`` is passed; None: ``default_step_density``. A
             non-positive or non-finite s inside a run ends it with status TIME_TRANSFORM.
+        s_max: the default density's largest value, > 1: steps in t at most ``s_max`` h where
+            Hamilton's field vanishes (None: 3; ``float("inf")``: unbounded, the density
+            (|F(z0)| / |F(z)|)^(3/4), which fails where F vanishes). With the default s only.
+            Static.
 
     Raises:
         TypeError: ``s`` neither None nor callable.
+        ValueError: ``s_max`` not > 1, or given with an ``s`` of your own.
     """
 
     s: object = dataclasses.field(default=None, metadata=dict(static=True))
+    s_max: object = dataclasses.field(default=None, metadata=dict(static=True))
 
-    def __post_init__(self):  # s is static: the user's object, also where JAX rebuilds the node
+    def __post_init__(self):  # static fields: the user's objects, also where JAX rebuilds the node
         if self.s is not None and not callable(self.s):
             raise TypeError(f"TimeTransform: s must be a callable s(q, p), got {type(self.s).__name__}.")
+        if self.s_max is not None:
+            if self.s is not None:
+                raise ValueError("TimeTransform: s_max bounds the default density; an s of your own bounds itself.")
+            if isinstance(self.s_max, bool) or not isinstance(self.s_max, (int, float, np.integer, np.floating)):
+                raise ValueError(f"TimeTransform: s_max must be a number > 1, got {self.s_max!r}.")
+            _floor_share(float(self.s_max))
 
 
 @pytree_dataclass
@@ -283,39 +354,44 @@ def scaled_error(e, z0, z1, controller):
     return jnp.where(jnp.isfinite(err), err, jnp.inf)
 
 
-def poincare(H, s, q0, p0, t0, args):
+def poincare(H, transform, q0, p0, t0, args):
     """The time-transformed problem: ``(K, q~0, p~0, args~, s~)`` with the Poincare-transformed
     Hamiltonian ``K(q~, p~, args~) = s(q, p) (H(q, p) + p_t)`` on ``q~ = (q, t)``, ``p~ = (p, p_t)``,
     ``p_t(0) = -H(q0, p0)`` (module docstring), and ``s~(q, p)`` the step density bound to
-    ``args~``. H and s take ``args`` when it is not None; s None: ``default_step_density``, with
-    K's gradient in closed form (``_default_transformed``).
+    ``args~``. H and s take ``args`` when it is not None; ``transform.s`` None:
+    ``default_step_density`` with u = ``field_scale`` in ``args~``, and K's gradient in closed
+    form (``_default_transformed``).
     """
     d = q0.shape[0]
-    step_density = lambda a: default_step_density(_bind(H, a[0]), a[1]) if s is None else _bind(s, a[0])
+    s = transform.s
+    s_max = S_MAX if transform.s_max is None else float(transform.s_max)
+    step_density = lambda a: default_step_density(_bind(H, a[0]), a[1], s_max) if s is None else _bind(s, a[0])
 
     def K(qt, pt, a):
         q, p = qt[:d], pt[:d]
         return step_density(a)(q, p) * (_bind(H, a[0])(q, p) + pt[d])
 
     H0 = _bind(H, args)(q0, p0)
-    extended = (args, field_norm(_bind(H, args), q0, p0))
+    extended = (args, field_scale(_bind(H, args), q0, p0)) if s is None else (args, None)
     qt0 = jnp.concatenate([q0, jnp.asarray(t0, q0.dtype)[None]])
     pt0 = jnp.concatenate([p0, -H0[None]])
-    return K if s is not None else _default_transformed(K, H, d), qt0, pt0, extended, step_density(extended)
+    transformed = K if s is not None else _default_transformed(K, H, d, _floor_share(s_max))
+    return transformed, qt0, pt0, extended, step_density(extended)
 
 
 def _bind(f, args):
     return f if args is None else (lambda q, p: f(q, p, args))
 
 
-def _default_transformed(K, H, d):
-    """``K`` of the default step density s = (F0 / |F|)^(3/4), with its gradient in closed form.
+def _default_transformed(K, H, d, k2):
+    """``K`` of the default step density s = ((1 + k^2) / (u |DH|^2 + k^2))^(3/8)
+    (``default_step_density``; s = 1 where u = 0), with its gradient in closed form.
 
     |F| = |J DH| = |DH| (J is orthogonal), so DK = (H + p_t) Ds + s DH with
-    Ds = -(3/4) s D^2H DH / |DH|^2: one Hessian-vector product, by forward mode over H's
-    gradient. ``jax.grad`` of K as written differentiates the reverse-mode |DH| in reverse mode
-    again, a program several times as large (the residual of every element holds DK). The
-    derivatives in ``args~`` (H's args and F0) are forward mode over K.
+    Ds = -(3/4) s u D^2H DH / (u |DH|^2 + k^2) (0 where u = 0): one Hessian-vector product, by
+    forward mode over H's gradient. ``jax.grad`` of K as written differentiates the reverse-mode
+    |DH|^2 in reverse mode again, a program several times as large (the residual of every
+    element holds DK). The derivatives in ``args~`` (H's args and u) are forward mode over K.
     """
 
     @jax.custom_jvp
@@ -326,12 +402,14 @@ def _default_transformed(K, H, d):
     def transformed_jvp(primals, tangents):
         qt, pt, a = primals
         dqt, dpt, da = tangents
-        q, p, H_a = qt[:d], pt[:d], _bind(H, a[0])
+        q, p, H_a, u = qt[:d], pt[:d], _bind(H, a[0]), a[1]
         energy, dH = jax.value_and_grad(H_a, argnums=(0, 1))(q, p)
         norm2 = sum(jnp.sum(g * g) for g in dH)
-        s = (a[1] * a[1] / norm2) ** 0.375
+        active = u > 0
+        denominator = jnp.where(active, u * norm2 + k2, 1.0)
+        s = (jnp.where(active, 1.0 + k2, 1.0) / denominator) ** 0.375
         hessian_dH = jax.jvp(jax.grad(H_a, argnums=(0, 1)), (q, p), dH)[1]
-        slope = -0.75 * s * (energy + pt[d]) / norm2
+        slope = -0.75 * s * (energy + pt[d]) * u / denominator
         gradient = (jnp.concatenate([slope * hessian_dH[0] + s * dH[0], jnp.zeros_like(qt[d:])]),
                     jnp.concatenate([slope * hessian_dH[1] + s * dH[1], s[None]]))
         tangent = sum(g @ t for g, t in zip(gradient, (dqt, dpt)) if not _symbolic_zero(t))

@@ -119,10 +119,10 @@ MESSAGES = {
     ),
     Status.TIME_TRANSFORM: (
         "The time transformation's step density s(q, p) was not positive and finite at a state of "
-        "the run. The default s (TimeTransform()) fails where Hamilton's field vanishes, at an "
-        "equilibrium (at the start or on the way): pass a TimeTransform(s=...) of your own there, "
-        "or use fixed steps or a PIDController. A TimeTransform(s=...) of your own must stay positive "
-        "and finite at every state the orbit reaches: look where your s vanishes, changes sign or "
+        "the run. The default s (TimeTransform()) fails only where Hamilton's field overflows, at a "
+        "collision, or with s_max=inf where the field vanishes on the way: pass a TimeTransform(s=...) "
+        "of your own there, or use fixed steps or a PIDController. A TimeTransform(s=...) of your own "
+        "must stay positive and finite at every state the orbit reaches: look where your s vanishes, changes sign or "
         "divides by zero."
     ),
 }

@@ -254,9 +254,10 @@ def test_an_event_function_of_a_vector_names_itself_and_the_shape():
 def test_the_time_transform_status_advises_the_default_s_and_a_users_s_apart():
     message = gj.status_message(gj.Status.TIME_TRANSFORM)
     default, own = message.split(". ")[1:3]
-    # the default s fails at an equilibrium: there, a density of one's own helps
-    assert default.startswith("The default s (TimeTransform()) fails where Hamilton's field vanishes, at an "
-                              "equilibrium") and "pass a TimeTransform(s=...) of your own there" in default
+    # the default s fails only where the field overflows (or, unbounded, vanishes): there, a density of one's own helps
+    assert default.startswith("The default s (TimeTransform()) fails only where Hamilton's field overflows, at a "
+                              "collision, or with s_max=inf where the field vanishes on the way") \
+        and "pass a TimeTransform(s=...) of your own there" in default
     # one's own s failed: it must stay positive and finite, not be replaced by another of one's own
     assert own.startswith("A TimeTransform(s=...) of your own must stay positive and finite at every state the "
                           "orbit reaches") and "pass" not in own
