@@ -212,7 +212,7 @@ def pid():
         H, q0, p0 = helpers.kepler(e)
         sol = gj.integrate(H, q0, p0, method=gj.CG(k, gj.gauss_legendre(k)), h=0.01, t1=2 * np.pi,
                            controller=gj.PIDController(tol, tol), dense=True, max_steps=2000)
-        n = int(sol.stats["num_steps"])
+        n = int(sol.stats["num_accepted_steps"])
         t, z, W = np.asarray(sol.dense.t[: n + 1]), sol.dense.z[: n + 1], sol.dense.W[:n]
         ts = np.linspace(0, 2 * np.pi, 4001)[1:-1]
         el = np.clip(np.searchsorted(t, ts, side="right") - 1, 0, n - 1)
@@ -240,7 +240,7 @@ def transformed(orbits):
         controller = gj.TimeTransform(None if density is None else own)
         sol = gj.integrate(He, q0, p0, method=gj.CG(k, gj.gauss_legendre(k)), h=h, t1=T, controller=controller,
                            dense=True, max_steps=200 * orbits + 1000, error_estimate=False)
-        n, d = int(sol.stats["num_steps"]), sol.dense
+        n, d = int(sol.stats["num_accepted_steps"]), sol.dense
         K, _, _, args, _, clock = _adaptive.problem(He, controller, q0, p0, 0.0, None)
         Kb = bind_args(K, args)
         z, W, t = d.z[: n + 1], d.W[:n], np.asarray(d.t[: n + 1])
@@ -284,7 +284,7 @@ def cost(count=4000):
     for label, Hb, k, kw, (qs, ps) in cases:
         sol = gj.integrate(He if "transformed" in label else H, qs, ps, method=gj.CG(k, gj.gauss_legendre(k)),
                            dense=True, **kw)
-        n = int(sol.stats["num_steps"]) - 1
+        n = int(sol.stats["num_accepted_steps"]) - 1
         el = rng.integers(0, n, count)
         h = kw["h"]
         data = (sol.dense.z[el], sol.dense.z[el + 1], sol.dense.W[el], jnp.asarray(rng.uniform(0, 1, count)))
