@@ -15,7 +15,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from . import _progress
+from . import _output, _progress
 from ._controllers import embedded_error
 from ._solve import Options, SolverOptions, Status, initial_matrix, solve, solver_from
 
@@ -275,7 +275,9 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
             new = jax.tree.map(lambda a, b: jnp.where(idle, a, b), dict(c, done=c["done"] + 1), new)
         if progress:
             _progress.report(new["done"], total, _progress.stride(total))
-        kept = (z, method.polynomial(H_bound, q, p, Z, h_el)) if dense else None
+        # dense output: the element polynomial refined to the nodes' accuracy (``_output.refined``)
+        kept = (z, _output.refined(method, H_bound, z, z1, method.polynomial(H_bound, q, p, Z, h_el), h_el)
+                ) if dense else None
         return new, kept
 
     def reported(c):
