@@ -14,12 +14,13 @@ with the same state and span: Dopri8 with a constant step or with its PID contro
 Tsit5 for the run kinds the issue compared).
 
 ``cli``: ``galerkin-jax run`` in a fresh process, cold and again with its compilation cache
-(the wall time of the command, and the compile time it prints). Results:
-``results/compile.json``.
+(the wall time of the command, and the compile time it prints). ``tour``: the README's tour in
+fresh processes, without and with the cache. Results: ``results/compile.json``.
 """
 
 import argparse
 import os
+import pathlib
 import re
 import subprocess
 import sys
@@ -210,9 +211,29 @@ def cli_part():
     return rows
 
 
+_TOUR = re.compile(r"### From Python\n\n```python\n(.*?)```", re.S)
+
+
+def tour_part():
+    """The README's tour (its first Python block) in fresh processes: without the compilation
+    cache, then twice with it (``gj.use_compilation_cache``, a new folder): the wall time from
+    the first import to its last result."""
+    readme = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
+    code = ("import time\nstart = time.perf_counter()\n" + _TOUR.search(readme).group(1)
+            + "\njax.block_until_ready((sol, dense, q, q1, A, h))\nprint('tour', time.perf_counter() - start)\n")
+    rows = {}
+    with tempfile.TemporaryDirectory() as folder:
+        for label, cache in (("no cache", ""), ("cache, first", folder), ("cache, again", folder)):
+            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                                  env=dict(os.environ, GALERKIN_JAX_CACHE=cache))
+            rows[label] = float(done.stdout.split()[-1])
+            print(f"tour    {label:28s} wall {rows[label]:5.2f} s", flush=True)
+    return rows
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--only", nargs="*", default=["kepler", "fput", "cli"])
+    parser.add_argument("--only", nargs="*", default=["kepler", "fput", "cli", "tour"])
     parser.add_argument("--kinds", nargs="*", help="run kinds to measure (default: all), e.g. 'integrate PID'")
     parser.add_argument("--name", default="compile")
     options = parser.parse_args()
@@ -224,6 +245,8 @@ def main():
         results["fput"] = problem_part("fput", fput(), options.kinds)
     if "cli" in options.only:
         results["cli"] = cli_part()
+    if "tour" in options.only:
+        results["tour"] = tour_part()
     write(options.name, results)
 
 
