@@ -23,7 +23,7 @@ before it; the element that lands on t1 is t1 - t_n long, so t0, t1 and a consta
 derivatives, a controller's steps none. A time-transformed run's time is a coordinate of its
 state, and its last element's length in tau is fixed by landing on t1 (``_landing``). A save
 time's place alpha in its element, and an event's, move with the inputs as the implicit
-function theorem says (``_root``). A derivative that is not defined raises (``_check_tangents``);
+function theorem says (``_root``). A derivative that is not defined raises (``_tangents``);
 second derivatives of such a run raise too (``_first_order``).
 """
 
@@ -97,6 +97,8 @@ def run(spec, inputs):
         c = _forward(spec, inputs, every=spec.every)
         out = {k: v for k, v in c.items() if k != "checkpoints"}
         differentiable = {k: out[k] for k in DIFFERENTIABLE if out.get(k) is not None}
+        if not leaves:  # no input with a derivative moves
+            return out, jax.tree.map(_zero_tangent, out)
         d_out = linear_map(lambda leaves: _tangent_sweep(spec, inputs, c, full(leaves)),
                            lambda ct: pick(_adjoint_sweep(spec, inputs, c, ct)), leaves, differentiable)
         zero = {k: jax.tree.map(_zero_tangent, v) for k, v in out.items() if k not in d_out}

@@ -4,6 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import galerkin_jax as gj
+
 # The paper's isotropic oscillator [GBS, Figs. 4.1-4.5]: m = 2, c = -0.25, H = 0.25.
 OSC_M, OSC_C = 2.0, -0.25
 
@@ -124,3 +126,12 @@ def check_first_derivatives(f, args, *, eps, atol, rtol, seed=0):
     np.testing.assert_allclose(forward, numerical, atol=atol, rtol=rtol, err_msg="forward mode")
     projected = sum(jnp.vdot(c, t) for c, t in zip(reverse, tangent))
     np.testing.assert_allclose(projected, jnp.vdot(cotangent, numerical), atol=atol, rtol=rtol, err_msg="reverse mode")
+
+
+def cg_element(k, H, z0, h, sweeps=100):
+    """cG(k) + Gauss k on one element from z0: ``(z1, W)``, its fixed point by plain sweeps
+    (a smaller program than the run's root finder; the same element to round-off)."""
+    method = gj.CG(k, gj.gauss_legendre(k))
+    q, p = jnp.split(z0, 2)
+    C = jax.lax.fori_loop(0, sweeps, lambda _, C: C - method.residual(H, q, p, C, h), method.initial_guess(q, p))
+    return z0 + C[0], method.polynomial(H, q, p, C, h)

@@ -19,22 +19,13 @@ from galerkin_jax._march import bind_args
 ALPHA = np.linspace(0.1, 0.9, 9)
 
 
-def cg_element(k, H, z0, h, sweeps=100):
-    """cG(k) + Gauss k on one element from z0: ``(z1, W)``, its fixed point by plain sweeps
-    (a smaller program than the run's root finder; the same element to round-off)."""
-    method = gj.CG(k, gj.gauss_legendre(k))
-    q, p = jnp.split(z0, 2)
-    C = jax.lax.fori_loop(0, sweeps, lambda _, C: C - method.residual(H, q, p, C, h), method.initial_guess(q, p))
-    return z0 + C[0], method.polynomial(H, q, p, C, h)
-
-
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def elements(H, k, z0, h):
     """For each (z0, h): z1, the element polynomial at ``ALPHA`` and ``interpolate`` there with
     order 2k + 1, and ``refine``'s polynomial at 0 and 1."""
 
     def one(z0, h):
-        z1, W = cg_element(k, H, z0, h)
+        z1, W = helpers.cg_element(k, H, z0, h)
         refined = _interpolate.refine(H, z0, z1, W, h, order=2 * k + 1)
         return (z1, _output.on_polynomial(z0, W, jnp.asarray(ALPHA)),
                 _interpolate.interpolate(H, z0, z1, W, h, jnp.asarray(ALPHA), order=2 * k + 1),
@@ -97,7 +88,7 @@ def test_refine_takes_any_h_that_jax_grad_takes():
     k, hs = 3, np.array([0.4, 0.2, 0.1])
     z0 = jnp.array([1.5, -0.3, 0.2, 0.8])
     z1, _, refined, _ = elements(H, k, jnp.tile(z0, (3, 1)), jnp.asarray(hs))
-    flow = jax.jit(jax.vmap(lambda tau: cg_element(10, H, z0, tau, sweeps=60)[0]))
+    flow = jax.jit(jax.vmap(lambda tau: helpers.cg_element(10, H, z0, tau, sweeps=60)[0]))
     inside = np.stack([np.asarray(flow(jnp.asarray(ALPHA * h))) for h in hs])
     node = np.max(np.abs(np.asarray(z1) - np.asarray(flow(jnp.asarray(hs)))), axis=1)
     error = np.max(np.abs(np.asarray(refined) - inside), axis=(1, 2))
@@ -130,7 +121,7 @@ def test_interpolate_is_differentiable():
     differences (cG(3) element on Kepler e = 0.5, alpha a vector)."""
     H = helpers.kepler(0.5)[0]
     z0 = jnp.asarray(kepler_states(0.3, 0.5))
-    z1, W = jax.jit(cg_element, static_argnums=(0, 1))(3, H, z0, 0.1)
+    z1, W = jax.jit(helpers.cg_element, static_argnums=(0, 1))(3, H, z0, 0.1)
     f = lambda z0, z1, W, h, alpha: _interpolate.interpolate(H, z0, z1, W, h, alpha, order=7)
     helpers.check_first_derivatives(f, (z0, z1, W, 0.1, jnp.asarray([0.2, 0.5, 0.9])), eps=1e-6, atol=1e-8,
                                     rtol=1e-6)
