@@ -9,6 +9,7 @@ import time
 import timeit
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 RESULTS = pathlib.Path(__file__).parent / "results"
@@ -88,3 +89,18 @@ def figure(path, ncols=1, size=(6, 4.5)):
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def element_polynomials(method, H, z, h):
+    """Each element's own polynomial ``W`` (m, 2d), solved again from its start node ``z[n]``
+    over ``h[n]`` (H bound to its args): dense output holds it refined (``_output.refined``)."""
+    from galerkin_jax._integrate import solver_options
+    from galerkin_jax._march import solve_element
+
+    options = solver_options(method)
+
+    def one(z0, h):
+        q, p = jnp.split(z0, 2)
+        return method.polynomial(H, q, p, solve_element(method, H, q, p, h, None, options)[2], h)
+
+    return jax.jit(jax.vmap(one))(jnp.asarray(z), jnp.broadcast_to(jnp.asarray(h), (len(z),)))

@@ -53,7 +53,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import _peers as peers  # noqa: E402
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, best_time, compiled, energy_quarters, figure, write  # noqa: E402
+from _common import RESULTS, best_time, compiled, element_polynomials, energy_quarters, figure, write  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
 from galerkin_jax import _adaptive as adaptive  # noqa: E402
 from galerkin_jax._controllers import embedded_error  # noqa: E402
@@ -453,9 +453,10 @@ def estimate_share(label, prob, k, tol):
     assert int(sol.status) == 0
     steps, rejected = int(sol.stats["num_accepted_steps"]), int(sol.stats["num_rejected_steps"])
     run_pid = best_time(call_pid, q0, p0, repeat=5)
-    t, z, W = (np.asarray(x) for x in (sol.dense.t, sol.dense.z, sol.dense.W))
+    t, z = (np.asarray(x) for x in (sol.dense.t, sol.dense.z))
     h = jnp.asarray(np.diff(t[: steps + 1]))
-    zs, Ws = jnp.asarray(z[:steps]), jnp.asarray(W[:steps])
+    zs = jnp.asarray(z[:steps])
+    Ws = element_polynomials(method, H, zs, h)
     d = q0.shape[0]
 
     def one(z, W, h):

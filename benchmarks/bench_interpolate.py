@@ -44,7 +44,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent.parent / "tests"))
 
 import galerkin_jax as gj  # noqa: E402
 import helpers  # noqa: E402
-from _common import best_time, compiled, write  # noqa: E402
+from _common import best_time, compiled, element_polynomials, write  # noqa: E402
 from galerkin_jax import _adaptive, _basis, _interpolate, _output  # noqa: E402
 from galerkin_jax._defect import symplectic_field  # noqa: E402
 from galerkin_jax._march import bind_args  # noqa: E402
@@ -213,7 +213,8 @@ def pid():
         sol = gj.integrate(H, q0, p0, method=gj.CG(k, gj.gauss_legendre(k)), h=0.01, t1=2 * np.pi,
                            controller=gj.PIDController(tol, tol), dense=True, max_steps=2000)
         n = int(sol.stats["num_accepted_steps"])
-        t, z, W = np.asarray(sol.dense.t[: n + 1]), sol.dense.z[: n + 1], sol.dense.W[:n]
+        t, z = np.asarray(sol.dense.t[: n + 1]), sol.dense.z[: n + 1]
+        W = element_polynomials(gj.CG(k, gj.gauss_legendre(k)), H, z[:n], np.diff(t))
         ts = np.linspace(0, 2 * np.pi, 4001)[1:-1]
         el = np.clip(np.searchsorted(t, ts, side="right") - 1, 0, n - 1)
         hs, alphas = jnp.asarray(np.diff(t)[el]), jnp.asarray((ts - t[el]) / np.diff(t)[el])
@@ -243,7 +244,8 @@ def transformed(orbits):
         n, d = int(sol.stats["num_accepted_steps"]), sol.dense
         K, _, _, args, _, clock = _adaptive.problem(He, controller, q0, p0, 0.0, None)
         Kb = bind_args(K, args)
-        z, W, t = d.z[: n + 1], d.W[:n], np.asarray(d.t[: n + 1])
+        z, t = d.z[: n + 1], np.asarray(d.t[: n + 1])
+        W = element_polynomials(gj.CG(k, gj.gauss_legendre(k)), Kb, z[:n], h)  # the last one's h is not h: left out below
         energy = jax.jit(lambda z: jnp.abs(jax.vmap(lambda x: He(*_output.user_view(x, clock)))(z) - H0))
         nodes = np.asarray(energy(z))
         ts = np.linspace(0, T, 4001)[1:-1]
@@ -287,7 +289,8 @@ def cost(count=4000):
         n = int(sol.stats["num_accepted_steps"]) - 1
         el = rng.integers(0, n, count)
         h = kw["h"]
-        data = (sol.dense.z[el], sol.dense.z[el + 1], sol.dense.W[el], jnp.asarray(rng.uniform(0, 1, count)))
+        W = element_polynomials(gj.CG(k, gj.gauss_legendre(k)), Hb, sol.dense.z[el], h)
+        data = (sol.dense.z[el], sol.dense.z[el + 1], W, jnp.asarray(rng.uniform(0, 1, count)))
         row = dict(case=label)
         named = dict(candidates(Hb, k))
         del named["Hermite r=k-1"]

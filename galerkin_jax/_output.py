@@ -126,7 +126,9 @@ class DenseOutput:
     Attributes:
         t: ``(N + 1,)`` node times (inf past the last element of a controller's run).
         z: ``(N + 1, 2d)`` states at the nodes.
-        W: ``(N, m, 2d)`` Legendre coefficients of each element's polynomial minus its start.
+        W: ``(N, m, 2d)`` Legendre coefficients of each element's polynomial minus its start:
+            the method's polynomial refined to the nodes' accuracy (``refined``; m = 2k + 1
+            for cG(k)), not the polynomial the element equations solve for.
         t_end: the time up to which the run holds valid states (a failed run's last good node,
             a terminal event's time): NaN after it.
         t1: the end of the requested span.
