@@ -92,15 +92,15 @@ def run(spec, inputs):
 
     def outputs_jvp(primals, tangents):
         (inputs,), (d_inputs,) = primals, tangents
-        leaves, full, pick = _tangents(spec, inputs, d_inputs)
+        leaves, full, pick, wanted = _tangents(spec, inputs, d_inputs)
         inputs = _first_order(inputs)
         c = _forward(spec, inputs, every=spec.every)
         out = {k: v for k, v in c.items() if k != "checkpoints"}
         differentiable = {k: out[k] for k in DIFFERENTIABLE if out.get(k) is not None}
         if not leaves:  # no input with a derivative moves
             return out, jax.tree.map(_zero_tangent, out)
-        d_out = linear_map(lambda leaves: _tangent_sweep(spec, inputs, c, full(leaves)),
-                           lambda ct: pick(_adjoint_sweep(spec, inputs, c, ct)), leaves, differentiable)
+        d_out = linear_map(lambda leaves: _tangent_sweep(spec, inputs, c, full(leaves), wanted),
+                           lambda ct: pick(_adjoint_sweep(spec, inputs, c, ct, wanted)), leaves, differentiable)
         zero = {k: jax.tree.map(_zero_tangent, v) for k, v in out.items() if k not in d_out}
         return out, {**zero, **d_out}
 
@@ -147,10 +147,11 @@ def _nonzero(tangent):
 
 
 def _tangents(spec, inputs, d_inputs):
-    """``(leaves, full, pick)``: the tangents of the differentiable inputs (``INPUTS``) that are
-    not symbolic zeros (floating leaves only), ``full(leaves)``, all the tangents as a dict of
-    the inputs' structure with zeros elsewhere, and ``pick(dict) -> leaves``, its inverse. A
-    derivative the run does not have raises, naming the input."""
+    """``(leaves, full, pick, wanted)``: the tangents of the differentiable inputs (``INPUTS``)
+    that are not symbolic zeros (floating leaves only), ``full(leaves)``, all the tangents as a
+    dict of the inputs' structure with zeros elsewhere, ``pick(dict) -> leaves``, its inverse,
+    and the names of the inputs that have such a tangent. A derivative the run does not have
+    raises, naming the input."""
     if (inputs["controller"] is not None or spec.transform is not None) and _nonzero(d_inputs["h"]):
         raise ValueError("h has no derivative here: a controller's first step, or a time transformation's step "
                          "in tau, is a constant of the trajectory (fixed steps have a derivative in h).")
@@ -160,6 +161,9 @@ def _tangents(spec, inputs, d_inputs):
     primals, structure = jax.tree.flatten({k: inputs[k] for k in INPUTS})
     tangents = jax.tree.leaves({k: d_inputs[k] for k in INPUTS}, is_leaf=_symbolic_zero)
     where = [i for i, (x, t) in enumerate(zip(primals, tangents)) if _inexact(x) and not _symbolic_zero(t)]
+    moving = lambda k: any(_inexact(x) and not _symbolic_zero(t) for x, t in
+                           zip(jax.tree.leaves(inputs[k]), jax.tree.leaves(d_inputs[k], is_leaf=_symbolic_zero)))
+    wanted = frozenset(filter(moving, INPUTS))
 
     def full(leaves):
         merged = [_zero_tangent(x) for x in primals]
@@ -171,7 +175,22 @@ def _tangents(spec, inputs, d_inputs):
         leaves = jax.tree.leaves(bars)
         return [leaves[i] for i in where]
 
-    return [tangents[i] for i in where], full, pick
+    return [tangents[i] for i in where], full, pick, wanted
+
+
+def _held(wanted):
+    """``(theta, z, t0, t1, h) -> the same``, with the inputs that no derivative asks for held
+    constant (``stop_gradient``), so that neither sweep computes their tangents or cotangents
+    (a quadrature rule's, which cost as much as the state's). ``args~`` moves with the start."""
+    keep = lambda key, x: x if key in wanted else jax.lax.stop_gradient(x)
+    start_moves = bool(wanted & {"q0", "p0", "args", "t0"})
+
+    def hold(theta, z, t0, t1, h):
+        method, run_args = theta
+        run_args = run_args if start_moves else jax.lax.stop_gradient(run_args)
+        return (keep("method", method), run_args), z, keep("t0", t0), keep("t1", t1), keep("h", h)
+
+    return hold
 
 
 @jax.custom_jvp
@@ -408,8 +427,9 @@ class _Element:
         return z1, W, start, length
 
 
-def _tangent_sweep(spec, inputs, c, d):
-    """The tangents of the differentiable outputs for the inputs' tangents ``d`` (forward mode)."""
+def _tangent_sweep(spec, inputs, c, d, wanted):
+    """The tangents of the differentiable outputs for the inputs' tangents ``d`` (forward mode),
+    ``wanted`` the inputs whose tangents are not zero (``_tangents``)."""
     fn, _, clock = _problem(spec, inputs)
     view = lambda z: _output.user_view(z, clock)
     primal = tuple(inputs[k] for k in ("q0", "p0", "args", "t0"))
@@ -418,6 +438,7 @@ def _tangent_sweep(spec, inputs, c, d):
     theta, d_theta = (inputs["method"], run_args), (d["method"], d_run_args)
     times, d_times = tuple(inputs[k] for k in ("t0", "t1", "h")), tuple(d[k] for k in ("t0", "t1", "h"))
     options = _resolve_options(spec, inputs)
+    hold = _held(wanted)
     dtype = z0.dtype
     out = {k: jax.tree.map(jnp.zeros_like, c[k]) for k in DIFFERENTIABLE if k in c and k != "acc"}
     acc = d_acc = None
@@ -434,7 +455,7 @@ def _tangent_sweep(spec, inputs, c, d):
         element = _Element(spec, fn, inputs, c, clock, n, t_n, None)
         Z, matrix, solved = _resolve(fn, theta, z, element.h_n, previous, matrix, options)
         element.Z = Z
-        (z1, W, start, h), (dz1, dW, d_start, dh) = jax.jvp(element.outputs, (theta, z, *times),
+        (z1, W, start, h), (dz1, dW, d_start, dh) = jax.jvp(lambda *a: element.outputs(*hold(*a)), (theta, z, *times),
                                                             (d_theta, dz, *d_times))
         if "saved" in out:
             def save(i, saved):
@@ -483,8 +504,9 @@ def _tangent_sweep(spec, inputs, c, d):
     return jax.tree.map(lambda x: jnp.where(ok, x, jnp.nan) if _inexact(x) else x, out)
 
 
-def _adjoint_sweep(spec, inputs, c, ct):
-    """The cotangents of the inputs for the outputs' cotangents ``ct`` (reverse mode)."""
+def _adjoint_sweep(spec, inputs, c, ct, wanted):
+    """The cotangents of the inputs for the outputs' cotangents ``ct`` (reverse mode); those
+    of inputs not in ``wanted`` (``_tangents``) are zero."""
     fn, _, clock = _problem(spec, inputs)
     view = lambda z: _output.user_view(z, clock)
     primal = tuple(inputs[k] for k in ("q0", "p0", "args", "t0"))
@@ -492,6 +514,7 @@ def _adjoint_sweep(spec, inputs, c, ct):
     theta = (inputs["method"], run_args)
     times = tuple(inputs[k] for k in ("t0", "t1", "h"))
     options = _resolve_options(spec, inputs)
+    hold = _held(wanted)
     dtype, every, steps = z0.dtype, spec.every, c["steps"]
     zeros = lambda tree: jax.tree.map(jnp.zeros_like, tree)
     if "saved" in ct:
@@ -544,7 +567,7 @@ def _adjoint_sweep(spec, inputs, c, ct):
             n = first + i
             z, acc = kept["z"][i], None if spec.observe is None else jax.tree.map(lambda a: a[i], kept["acc"])
             element = _Element(spec, fn, inputs, c, clock, n, kept["t"][i], kept["Z"][i])
-            (z1, W, start, h), element_vjp = jax.vjp(element.outputs, theta, z, *times)
+            (z1, W, start, h), element_vjp = jax.vjp(lambda *a: element.outputs(*hold(*a)), theta, z, *times)
             local = dict(z=jnp.zeros_like(z), W=jnp.zeros_like(W), z1=lam, start=jnp.zeros((), dtype),
                          h=jnp.zeros((), dtype), ts=ts_bar)
             if spec.observe is not None:

@@ -83,17 +83,18 @@ def _iterated(matvec, b):
     limit = (TOLERANCE * eps) ** 2 * jnp.sum(b * b)
 
     def going(s):
-        k, x, r2, shrinking = s
+        k, _, _, r2, shrinking = s
         return (k < RICHARDSON) & (r2 > limit) & shrinking
 
-    def step(s):
-        k, x, r2, _ = s
-        r = b - matvec(x)
-        r2_new = jnp.sum(r * r)
-        return k + 1, x + r, r2_new, r2_new < r2
+    def step(s):  # x and its residual r = b - matvec(x)
+        k, x, r, r2, _ = s
+        x = x + r
+        r_new = b - matvec(x)
+        r2_new = jnp.sum(r_new * r_new)
+        return k + 1, x, r_new, r2_new, r2_new < r2
 
-    _, x, r2, _ = jax.lax.while_loop(going, step, (0, jnp.zeros_like(b), jnp.sum(b * b), jnp.ones((), bool)))
-    return jax.lax.cond(r2 <= limit, lambda x: x, lambda x: x + _gmres(matvec, b - matvec(x)), x)
+    _, x, r, r2, _ = jax.lax.while_loop(going, step, (0, jnp.zeros_like(b), b, jnp.sum(b * b), jnp.ones((), bool)))
+    return jax.lax.cond(r2 <= limit, lambda x, r: x, lambda x, r: x + _gmres(matvec, r), x, r)
 
 
 def _gmres(matvec, b):

@@ -102,6 +102,26 @@ def test_gmres_tangent_equals_the_dense_solve_forward_and_reverse():
         assert np.abs(a - b).max() < 1e-11 * np.abs(b).max()
 
 
+def test_richardson_alone_reaches_the_tolerance_where_the_fixed_point_contracts(monkeypatch):
+    """At h = 0.2 (h omega = 0.4) the element's fixed point contracts, and Richardson's
+    iteration reaches 64 eps |b| without GMRES, forward and reverse: with GMRES replaced by
+    NaN the tangents still equal LU's (measured within 1.2e-14 relative; the bound is the
+    test above's). A first iteration that is judged against the residual of x = 0, which it
+    equals, stops Richardson after one product and hands every element to GMRES."""
+    fn, params, Z, dparams = element(h=0.2)
+    ok = jnp.asarray(True)
+    dense = jax.jit(lambda dp: _tangent.tangent(fn, params, Z, ok, dp, dense_limit=10**9))
+    monkeypatch.setattr(_tangent, "_gmres", lambda matvec, b: jnp.full_like(b, jnp.nan))
+    richardson = jax.jit(lambda dp: _tangent.tangent(fn, params, Z, ok, dp, dense_limit=0))
+    forward, expected = richardson(dparams), dense(dparams)
+    assert np.abs(forward - expected).max() < 1e-11 * np.abs(expected).max()
+    cotangent = jnp.asarray(np.random.default_rng(5).normal(size=Z.shape))
+    reverse = jax.vjp(richardson, dparams)[1](cotangent)
+    expected = jax.vjp(dense, dparams)[1](cotangent)
+    for a, b in zip(reverse[0], expected[0]):
+        assert np.abs(a - b).max() < 1e-11 * np.abs(b).max()
+
+
 def blend(Z, params):
     """R = a Z + (1 - a) P Z - p, P the cyclic shift: dR/dZ is I for a = 1 and P for a = 0.
     GMRES on P stagnates until the Krylov space is all of R^n (the residual polynomial
