@@ -253,9 +253,10 @@ def fixed_part(baseline=None):
             if baseline is not None:
                 new, old = results[case]["this tree"], results[case][f"baseline {baseline}"]
                 results[case]["gradient_new_over_baseline"] = new["gradient_s"] / old["gradient_s"]
-                results[case]["gradient_compile_new_over_baseline"] = new["gradient_compile_s"] / old["gradient_compile_s"]
-                results[case]["gradients_differ_by"] = float(np.max(np.abs(np.subtract(new["gradient"], old["gradient"])))
-                                                             / np.max(np.abs(old["gradient"])))
+                results[case]["gradient_compile_new_over_baseline"] = (new["gradient_compile_s"]
+                                                                       / old["gradient_compile_s"])
+                difference = np.max(np.abs(np.subtract(new["gradient"], old["gradient"])))
+                results[case]["gradients_differ_by"] = float(difference / np.max(np.abs(old["gradient"])))
     finally:
         if scratch is not None:
             subprocess.run(["git", "-C", str(here), "worktree", "remove", "--force", str(scratch)], check=False)
@@ -270,7 +271,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--only", nargs="*", default=list(PARTS))
     parser.add_argument("--name", default="gradients")
-    parser.add_argument("--baseline", default=None, help="a git ref whose fixed-step gradients the 'fixed' part also times")
+    parser.add_argument("--baseline", default=None,
+                        help="a git ref whose fixed-step gradients the 'fixed' part also times")
     options = parser.parse_args()
     jax.config.update("jax_enable_x64", True)
     parts = dict(PARTS, fixed=lambda: fixed_part(options.baseline))

@@ -245,7 +245,8 @@ def transformed(orbits):
         K, _, _, args, _, clock = _adaptive.problem(He, controller, q0, p0, 0.0, None)
         Kb = bind_args(K, args)
         z, t = d.z[: n + 1], np.asarray(d.t[: n + 1])
-        W = element_polynomials(gj.CG(k, gj.gauss_legendre(k)), Kb, z[:n], h)  # the last one's h is not h: left out below
+        # the last element's h is not h: it is left out below
+        W = element_polynomials(gj.CG(k, gj.gauss_legendre(k)), Kb, z[:n], h)
         energy = jax.jit(lambda z: jnp.abs(jax.vmap(lambda x: He(*_output.user_view(x, clock)))(z) - H0))
         nodes = np.asarray(energy(z))
         ts = np.linspace(0, T, 4001)[1:-1]
