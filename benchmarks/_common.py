@@ -94,8 +94,7 @@ def figure(path, ncols=1, size=(6, 4.5)):
 def element_polynomials(method, H, z, h):
     """Each element's own polynomial ``W`` (m, 2d), solved again from its start node ``z[n]``
     over ``h[n]`` (H bound to its args): dense output holds it refined (``_output.refined``)."""
-    from galerkin_jax._integrate import solver_options
-    from galerkin_jax._march import solve_element
+    from galerkin_jax._march import solve_element, solver_options
 
     options = solver_options(method)
 

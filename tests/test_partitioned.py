@@ -15,7 +15,6 @@ import pytest
 
 import galerkin_jax as gj
 from galerkin_jax import _march, scenes
-from galerkin_jax._integrate import solver_options
 
 METHODS = [gj.CG(1, gj.midpoint()), gj.CG(3, gj.gauss_legendre(3)), gj.CG(2, gj.gauss_lobatto(3)),
            gj.DG(0, gj.gauss_legendre(1)), gj.GalerkinVI(2, gj.gauss_legendre(2))]
@@ -124,7 +123,7 @@ def test_a_large_system_stops_at_the_round_off_floor_after_five_updates(fput_run
     scene, method, sol = fput_run
     assert float(sol.stats["num_newton_iterations"]) / 1000 <= 6.0
     fn, d = _march.element_residual(scene.H), scene.q0.shape[0]
-    options = solver_options(method)
+    options = _march.solver_options(method)
 
     @jax.jit
     @jax.vmap
