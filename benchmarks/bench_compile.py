@@ -8,7 +8,7 @@ process, split as JAX reports it (``jax.monitoring``): tracing and lowering (the
 wall time less XLA's compilation and less the run), XLA's compilation (every backend compile
 the call triggers, the library's eager checks included), and the run (the second call). The
 program's size: StableHLO operations of the lowered module (``lowered.as_text()``, the count
-``tests/test_program_size.py`` budgets) and the kernels (fusions) XLA compiled, which set the
+``tests/test_program.py`` budgets) and the kernels (fusions) XLA compiled, which set the
 compile time (about 4-8 ms each on this CPU). diffrax's equivalent runs in the same process,
 with the same state and span: Dopri8 with a constant step or with its PID controller (and
 Tsit5 for the run kinds the issue compared).

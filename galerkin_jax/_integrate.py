@@ -244,7 +244,8 @@ def integrate(
     single = isinstance(events, Event)
     events = _span.check_events(events, q0, p0, t0)
     if t1 is not None and _span.concrete(t0, t1) and float(t1) < float(t0):
-        sol = _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_at, events, options, flags)
+        sol = _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_at, events, save_every,
+                         options, flags)
     else:
         sol = _dispatch(H, q0, p0, method, h, args, n_steps, jnp.asarray(t0, q0.dtype), t1, controller, max_steps,
                         save_at, events, save_every, options, flags)
@@ -255,17 +256,18 @@ def integrate(
     return sol
 
 
-def _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_at, events, options, flags):
+def _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_at, events, save_every, options,
+               flags):
     """A run from t0 back to t1 < t0: Hamilton's flow is reversible, and with s = -t,
     dz/ds = J D(-H)(z), so it is the run of -H from -t0 to -t1 (save times and an event's g
     mapped alike), its times negated back."""
     if type(method).__name__ == "LagrangianVI":
         raise ValueError("t1 < t0 (a run backwards in time) needs a Hamiltonian method; LagrangianVI is given L.")
-    flip = lambda x: None if x is None else -jnp.asarray(x, q0.dtype)
+    flip = lambda x: x if x is None or isinstance(x, str) else -jnp.asarray(x, q0.dtype)  # "steps" stays
     reversed_events = None if events is None else tuple(dataclasses.replace(e, g=_time_reversed_event(e.g))
                                                          for e in events)
     sol = _dispatch(_time_reversed(H), q0, p0, method, h, args, None, flip(t0), flip(t1), controller, max_steps,
-                    flip(save_at), reversed_events, 1, options, flags)
+                    flip(save_at), reversed_events, save_every, options, flags)
     dense = None if sol.dense is None else dataclasses.replace(
         sol.dense, t=-sol.dense.t, t_end=-sol.dense.t_end, t1=-sol.dense.t1, direction=-1)
     events = None if sol.events is None else [dataclasses.replace(e, t=-e.t) for e in sol.events]

@@ -140,6 +140,20 @@ def test_a_run_backwards_in_time_returns_to_the_start(kind):
         np.testing.assert_allclose(back.events.t[:2], out.events.t[1::-1], atol=1e-9)
 
 
+def test_a_run_backwards_saves_every_node():
+    """save_at="steps" backwards: the accepted nodes in the user's time, decreasing from t0 to
+    t1, the last the run's end state; save_every with it raises as it does forwards."""
+    pid = dict(h=0.01, controller=gj.PIDController(1e-10, 1e-10), max_steps=400)
+    sol = gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at="steps", **pid)
+    end = gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, **pid)
+    n = int(sol.stats["num_accepted_steps"])
+    assert int(sol.status) == 0 and float(sol.t[0]) == 0.0 and float(sol.t[n]) == -1.0
+    assert np.all(np.diff(np.asarray(sol.t[: n + 1])) < 0)
+    np.testing.assert_array_equal(sol.q[n], end.q[-1])
+    with pytest.raises(ValueError, match="save_every"):
+        gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at="steps", save_every=2, **pid)
+
+
 def test_a_controller_picks_its_first_step():
     """h=None under a PIDController: Hairer, Norsett and Wanner's starting step (as diffrax's),
     from the field at the start and one Euler step; the run succeeds, and the step is neither
