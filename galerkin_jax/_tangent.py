@@ -93,17 +93,17 @@ def _iterated(matvec, b):
         r2_new = jnp.sum(r_new * r_new)
         return k + 1, x, r_new, r2_new, r2_new < r2
 
-    _, x, r, r2, _ = jax.lax.while_loop(going, step, (0, jnp.zeros_like(b), b, jnp.sum(b * b), jnp.ones((), bool)))
-    return jax.lax.cond(r2 <= limit, lambda x, r: x, lambda x, r: x + _gmres(matvec, r), x, r)
+    _, x, _, r2, _ = jax.lax.while_loop(going, step, (0, jnp.zeros_like(b), b, jnp.sum(b * b), jnp.ones((), bool)))
+    return jax.lax.cond(r2 <= limit, lambda x: x, lambda x: _gmres(matvec, b, x), x)
 
 
-def _gmres(matvec, b):
-    """``x`` with ``matvec(x) = b`` by restarted GMRES (``jax.scipy.sparse.linalg.gmres``,
+def _gmres(matvec, b, x0):
+    """``x`` with ``matvec(x) = b`` by restarted GMRES from ``x0`` (``jax.scipy.sparse.linalg.gmres``,
     Givens-rotation variant: it stops inside a restart once converged), NaN unless the
     recomputed residual is below ``sqrt(eps) |b|``. Called by ``custom_linear_solve`` with the
     product and, in reverse mode, with its transpose: each solve checks its own residual."""
     eps = jnp.finfo(b.dtype).eps
-    x, _ = jax.scipy.sparse.linalg.gmres(matvec, b, tol=TOLERANCE * eps, restart=RESTART, maxiter=RESTARTS,
+    x, _ = jax.scipy.sparse.linalg.gmres(matvec, b, x0, tol=TOLERANCE * eps, restart=RESTART, maxiter=RESTARTS,
                                          solve_method="incremental")
     residual, size = jnp.sqrt(jnp.sum((matvec(x) - b) ** 2)), jnp.sqrt(jnp.sum(b * b))
     return jnp.where(residual <= jnp.sqrt(eps) * size, x, jnp.nan)
