@@ -111,10 +111,10 @@ def _transform_rule(s, clock, view, tiny):
     return rule, dict(landing=jnp.zeros((), jnp.int32))
 
 
-def _constant_rule(t0, h, count):
+def _constant_rule(t0, h):
     """A constant h: element n spans [t0 + n h, t0 + (n + 1) h] (times by index, not by adding up
-    steps, whose rounding would put t1 a sliver beyond the ``count`` elements), the last one
-    (``count``, ``element_count``) shortened to land on t1."""
+    steps, whose rounding would put t1 a sliver beyond the last element), the last one (by its
+    index, ``element_count``, in ``run``) shortened to land on t1."""
 
     def rule(c, step):
         return dict(accept=step["solved"], finished=step["solved"] & step["last"], h_next=c["h"],
@@ -270,7 +270,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         options = dataclasses.replace(options, short_lived_matrices=True)
     else:
         count = element_count(t0, t1, h0)
-        rule, memory = _constant_rule(t0, h0, count), {}
+        rule, memory = _constant_rule(t0, h0), {}
     gs = None if events is None else tuple(lambda t, z, g=event.g: g(t, *view(z)) for event in events)
     c = _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, events, gs, observe, acc0,
                        estimate, every)
@@ -316,17 +316,17 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         samples = None if events is None else _event_crossings(events, gs, c, step, accept, clock)
         W_fine = None
         if dense is True or ts is not None or events is not None:
-            refine = lambda _: _output.refined(method, H_bound, z, z1, W, h)
+            refine = lambda W: _output.refined(method, H_bound, z, z1, W, h)
             if dense is True:
-                W_fine = refine(None)
+                W_fine = refine(W)
             else:
                 wanted = jnp.zeros((), bool)
-                if ts is not None:
-                    wanted = (c["index"] < ts.shape[0]) & (ts[jnp.minimum(c["index"], ts.shape[0] - 1)] <= verdict["t_b"])
+                if ts is not None:  # the next save time falls in the element
+                    next_save = ts[jnp.minimum(c["index"], ts.shape[0] - 1)]
+                    wanted = (c["index"] < ts.shape[0]) & (next_save <= verdict["t_b"])
                 if events is not None:
                     wanted = wanted | jnp.any(jnp.stack([jnp.any(crossing) for _, crossing, _ in samples]))
-                coarse = lambda _: jnp.concatenate([W, jnp.zeros((_output.refined_size(m) - m,) + W.shape[1:], dtype)])
-                W_fine = jax.lax.cond(accept & wanted, refine, coarse, None)
+                W_fine = jax.lax.cond(accept & wanted, refine, _output.padded, W)
         if events is not None:
             fields, (alpha_stop, ended) = _events_update(events, gs, c, step, accept, clock, samples, W_fine)
             new.update(fields, ended=jnp.where(accept, ended, c["ended"]))

@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _adaptive, _output
+from ._controllers import symbolic_zero as _symbolic_zero
 from ._march import bind_args, continued, element_residual, state_scale
 from ._solve import Options, Status, implicit, initial_matrix, solve
 
@@ -136,10 +137,6 @@ def _inexact(x):
 def _add(a, b):
     """``a + b`` of two cotangent pytrees, where the leaves are numbers (float0 has none)."""
     return jax.tree.map(lambda x, y: x + y if _inexact(x) and _inexact(y) else x, a, b)
-
-
-def _symbolic_zero(t):
-    return isinstance(t, jax.custom_derivatives.SymbolicZero)
 
 
 def _nonzero(tangent):

@@ -221,12 +221,15 @@ def default_step_density(H, u, s_max=S_MAX):
     """
     k2 = _floor_share(s_max)
 
-    def s(q, p):
-        active = u > 0
-        denominator = jnp.where(active, u * field_norm2(H, q, p) + k2, 1.0)
-        return (jnp.where(active, 1.0 + k2, 1.0) / denominator) ** 0.375
+    return lambda q, p: _density(u, field_norm2(H, q, p), k2)[0]
 
-    return s
+
+def _density(u, norm2, k2):
+    """``(s, u |F|^2 + k^2)`` of ``default_step_density`` from |F|^2 = ``norm2`` (s = 1 and the
+    denominator 1 where u = 0), for the density and for K's closed-form gradient alike."""
+    active = u > 0
+    denominator = jnp.where(active, u * norm2 + k2, 1.0)
+    return (jnp.where(active, 1.0 + k2, 1.0) / denominator) ** 0.375, denominator
 
 
 def _floor_share(s_max):
@@ -404,23 +407,21 @@ def _default_transformed(K, H, d, k2):
         dqt, dpt, da = tangents
         q, p, H_a, u = qt[:d], pt[:d], _bind(H, a[0]), a[1]
         energy, dH = jax.value_and_grad(H_a, argnums=(0, 1))(q, p)
-        norm2 = sum(jnp.sum(g * g) for g in dH)
-        active = u > 0
-        denominator = jnp.where(active, u * norm2 + k2, 1.0)
-        s = (jnp.where(active, 1.0 + k2, 1.0) / denominator) ** 0.375
+        s, denominator = _density(u, sum(jnp.sum(g * g) for g in dH), k2)
         hessian_dH = jax.jvp(jax.grad(H_a, argnums=(0, 1)), (q, p), dH)[1]
         slope = -0.75 * s * (energy + pt[d]) * u / denominator
         gradient = (jnp.concatenate([slope * hessian_dH[0] + s * dH[0], jnp.zeros_like(qt[d:])]),
                     jnp.concatenate([slope * hessian_dH[1] + s * dH[1], s[None]]))
-        tangent = sum(g @ t for g, t in zip(gradient, (dqt, dpt)) if not _symbolic_zero(t))
-        if not all(_symbolic_zero(t) for t in jax.tree.leaves(da, is_leaf=_symbolic_zero)):
-            da = jax.tree.map(lambda t, x: jnp.zeros_like(x) if _symbolic_zero(t) else t, da, a,
-                              is_leaf=_symbolic_zero)
+        tangent = sum(g @ t for g, t in zip(gradient, (dqt, dpt)) if not symbolic_zero(t))
+        if not all(symbolic_zero(t) for t in jax.tree.leaves(da, is_leaf=symbolic_zero)):
+            da = jax.tree.map(lambda t, x: jnp.zeros_like(x) if symbolic_zero(t) else t, da, a,
+                              is_leaf=symbolic_zero)
             tangent = tangent + jax.jvp(lambda a: K(qt, pt, a), (a,), (da,))[1]
         return s * (energy + pt[d]), jnp.asarray(tangent, qt.dtype)
 
     return transformed
 
 
-def _symbolic_zero(t):
+def symbolic_zero(t):
+    """A custom_jvp tangent that JAX passes as a symbolic zero (``symbolic_zeros=True``)."""
     return isinstance(t, jax.custom_derivatives.SymbolicZero)

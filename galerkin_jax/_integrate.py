@@ -261,7 +261,7 @@ def _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_a
     """A run from t0 back to t1 < t0: Hamilton's flow is reversible, and with s = -t,
     dz/ds = J D(-H)(z), so it is the run of -H from -t0 to -t1 (save times and an event's g
     mapped alike), its times negated back."""
-    if type(method).__name__ == "LagrangianVI":
+    if not method.hamiltonian:
         raise ValueError("t1 < t0 (a run backwards in time) needs a Hamiltonian method; LagrangianVI is given L.")
     flip = lambda x: x if x is None or isinstance(x, str) else -jnp.asarray(x, q0.dtype)  # "steps" stays
     reversed_events = None if events is None else tuple(dataclasses.replace(e, g=_time_reversed_event(e.g))

@@ -21,11 +21,15 @@ def refined(method, H_bound, z0, z1, W, h):
     (``_interpolate.refine`` at local order 2m - 1, m = W's coefficients: cG(k)'s 2k + 1), for
     save times, events and dense output; a method given a Lagrangian: ``W`` as it is, padded to
     the same shape. Returns ``(2m - 1, 2d)`` coefficients of the same form as W's."""
-    m = W.shape[0]
-    order = refined_size(m)
     if not method.hamiltonian:
-        return jnp.concatenate([W, jnp.zeros((order - m,) + W.shape[1:], W.dtype)])
-    return _interpolate.refine(H_bound, z0, z1, W, h, order=order)
+        return padded(W)
+    return _interpolate.refine(H_bound, z0, z1, W, h, order=refined_size(W.shape[0]))
+
+
+def padded(W):
+    """``W`` as it is, with zero coefficients up to ``refined``'s shape."""
+    m = W.shape[0]
+    return jnp.concatenate([W, jnp.zeros((refined_size(m) - m,) + W.shape[1:], W.dtype)])
 
 
 def refined_size(m):

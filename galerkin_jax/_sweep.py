@@ -122,8 +122,8 @@ def _result(final, runs, invariants, reference):
         final_error=_final_error(final, reference),
         q=final["q"], p=final["p"], status=final["status"], error_estimate=final["estimate"],
         num_newton_iterations=final["total"], max_newton_iterations=final["most"],
-        batch_newton_iterations=final["trips"], num_accepted_stalled=final["lenient"], num_steps=final.get("attempts", final["steps"]),
-        num_accepted_steps=final["steps"],
+        batch_newton_iterations=final["trips"], num_accepted_stalled=final["lenient"],
+        num_steps=final["attempts"], num_accepted_steps=final["steps"],
         num_rejected_steps=final["rejected"], solution=runs,
     )
 
@@ -144,7 +144,7 @@ def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, esti
         final, saved, _ = march(method, H, q0, p0, h, args, n_blocks=n_steps // block, block_size=block,
                                 options=options, checkpoint=checkpoint, observe=observe, acc0=acc0(q0, p0, args),
                                 progress=progress, estimate=estimate, **to_t1)
-        final["rejected"] = jnp.zeros_like(final["steps"])
+        final["rejected"], final["attempts"] = jnp.zeros_like(final["steps"]), final["steps"]
         if t1 is not None:
             final["status"] = short_of_t1(final["status"], t_end, t1)
         return final, (solution(final, saved, None, q0, p0, h, block, t0, t_end) if save_every else None)
