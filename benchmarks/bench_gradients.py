@@ -1,6 +1,6 @@
 """Gradients through runs whose steps a controller chooses: paid for by the steps taken.
 
-    python benchmarks/bench_gradients.py [--only max_steps peers long fixed] [--name gradients]
+    python benchmarks/bench_gradients.py [--only max_steps peers long fixed kept] [--name gradients]
     python benchmarks/bench_gradients.py --only fixed --baseline 5bbacdc --name gradients_fixed
 
 max_steps: the beta-FPUT chain of 6 masses (12 unknowns; ``scenes.fput``), cG(4) + Gauss 4,
@@ -10,11 +10,14 @@ max_steps: the beta-FPUT chain of 6 masses (12 unknowns; ``scenes.fput``), cG(4)
     once (``ru_maxrss``), against ``max_steps``; diffrax Tsit5 + PID (its default adjoint,
     RecursiveCheckpointAdjoint) beside it.
 peers: Kepler e = 0.9 over one orbit (cG(6) + Gauss 7) and FPUT N = 64 (cG(4) + Gauss 4, T = 10):
-    forward and gradient time of a PID run, its final error against a reference (the same run
+    forward and gradient time of a PID run (max_steps = 10^5; the gradient also at the default
+    max_steps, 4096, without and with ``checkpoint=True``), its final error against a reference (the same run
     at a tolerance 100 times tighter), and diffrax Dopri8 + PID at the tolerances that bracket
     that error (its default adjoint).
 long: the gradient's memory at max_steps = 10^6 for FPUT N = 64 (128 unknowns), from the
     compiled program, and the time and memory of one gradient through ~10^5 steps.
+kept: the peers part's gradient / forward ratios at the default max_steps against the number of
+    elements whose roots a gradient keeps (``_adjoint.KEPT_ELEMENTS``), each in a fresh process.
 fixed: gradients through fixed steps (d/dq0 of |q_N|^2 + |p_N|^2): Kepler e = 0.5 over one orbit,
     cG(6) + Gauss 6, 126 steps; the same with cG(2) + Gauss 3, h = 0.01, 2000 steps,
     ``checkpoint=True``; FPUT N = 64, cG(4) + Gauss 4, h = 0.035, 286 steps. Compile and run
@@ -140,15 +143,22 @@ def peers_part():
     results = {}
     for problem in (kepler, fput_large):
         label, H, q0, p0, T, method, tol = problem()
-        run = lambda q0, tol: gj.integrate(H, q0, p0, method=method, h=0.01, t1=T, controller=gj.PIDController(tol, tol),
-                                           max_steps=100_000)
+        run = lambda q0, tol, max_steps=100_000, checkpoint=False: gj.integrate(
+            H, q0, p0, method=method, h=0.01, t1=T, controller=gj.PIDController(tol, tol), max_steps=max_steps,
+            checkpoint=checkpoint)
         reference = np.asarray(run(q0, tol / 100).q[-1])
         final = run(q0, tol)
         error = float(np.max(np.abs(final.q[-1] - reference)))
-        loss = lambda q0: jnp.sum(run(q0, tol).q[-1] ** 2)
+        loss = lambda q0, **kwargs: jnp.sum(run(q0, tol, **kwargs).q[-1] ** 2)
         ours = dict(steps=int(final.stats["num_accepted_steps"]), final_error=error,
-                    forward_s=timed(lambda q0: run(q0, tol).q[-1], q0)[1], gradient_s=timed(jax.grad(loss), q0)[1])
-        ours["gradient_over_forward"] = ours["gradient_s"] / ours["forward_s"]
+                    forward_s=timed(lambda q0: run(q0, tol).q[-1], q0, repeat=20)[1],
+                    gradient_s=timed(jax.grad(loss), q0, repeat=20)[1],
+                    # the default max_steps (4096), and the fewest roots kept (``checkpoint=True``)
+                    gradient_default_max_steps_s=timed(jax.grad(lambda q0: loss(q0, max_steps=4096)), q0, repeat=20)[1],
+                    gradient_checkpoint_s=timed(jax.grad(lambda q0: loss(q0, max_steps=4096, checkpoint=True)), q0,
+                                                repeat=20)[1])
+        for key in ("gradient", "gradient_default_max_steps", "gradient_checkpoint"):
+            ours[key + "_over_forward"] = ours[key + "_s"] / ours["forward_s"]
         dH = jax.grad(H, argnums=(0, 1))
         term = diffrax.ODETerm(lambda t, y, args: (dH(*y)[1], -dH(*y)[0]))
         peers = []
@@ -168,7 +178,8 @@ def peers_part():
                               gradient_ratio_to_dopri8=ours["gradient_s"] / best["gradient_s"])
         print(f"{label}: ours {ours['steps']} steps, error {ours['final_error']:.1e}, forward "
               f"{1e3 * ours['forward_s']:.2f} ms, gradient {1e3 * ours['gradient_s']:.2f} ms "
-              f"({ours['gradient_over_forward']:.1f}x); Dopri8 at tol {best['tol']:g} (error "
+              f"({ours['gradient_over_forward']:.2f}x; at max_steps 4096 {ours['gradient_default_max_steps_over_forward']:.2f}x,"
+              f" with checkpoint=True {ours['gradient_checkpoint_over_forward']:.2f}x); Dopri8 at tol {best['tol']:g} (error "
               f"{best['final_error']:.1e}) gradient {1e3 * best['gradient_s']:.2f} ms: ratio "
               f"{results[label]['gradient_ratio_to_dopri8']:.2f}", flush=True)
     return results
@@ -267,7 +278,41 @@ def fixed_part(baseline=None):
     return results
 
 
-PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "fixed": fixed_part}
+_KEPT = textwrap.dedent("""
+    import json, sys
+    sys.path.insert(0, {here!r})
+    import jax, jax.numpy as jnp
+    jax.config.update("jax_enable_x64", True)
+    import bench_gradients as b
+    import galerkin_jax as gj
+    from galerkin_jax import _adjoint
+    from _common import best_time, compiled
+    _adjoint.KEPT_ELEMENTS = {kept}
+    label, H, q0, p0, T, method, tol = b.{problem}()
+    run = lambda q0: gj.integrate(H, q0, p0, method=method, h=0.01, t1=T, controller=gj.PIDController(tol, tol))
+    forward = best_time(compiled(lambda q0: run(q0).q[-1], q0)[1], q0, repeat=40)
+    gradient = best_time(compiled(jax.grad(lambda q0: jnp.sum(run(q0).q[-1] ** 2)), q0)[1], q0, repeat=40)
+    print(json.dumps(dict(forward_s=forward, gradient_s=gradient, gradient_over_forward=gradient / forward)))
+""")
+
+
+def kept_part():
+    """The gradient / forward ratio of the peers part's runs at the default max_steps (4096)
+    against the number of elements whose roots a gradient keeps (``_adjoint.KEPT_ELEMENTS``; 0:
+    sqrt(max_steps) = 64, as ``checkpoint=True``), each in a fresh process."""
+    results = {}
+    for problem in ("kepler", "fput_large"):
+        results[problem] = {}
+        for kept in (0, 256, 512, 1024, 4096):
+            code = _KEPT.format(here=str(pathlib.Path(__file__).parent), kept=kept, problem=problem)
+            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+            results[problem][kept] = json.loads(done.stdout.strip().splitlines()[-1])
+            print(f"{problem:10s} kept {kept:5d}: gradient / forward {results[problem][kept]['gradient_over_forward']:.2f}",
+                  flush=True)
+    return results
+
+
+PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "fixed": fixed_part, "kept": kept_part}
 
 
 def main():

@@ -224,6 +224,8 @@ def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, 
         slots = max_steps // every + 1
         c["checkpoints"] = jax.tree.map(lambda x: jnp.zeros((slots,) + jnp.shape(x), jnp.result_type(x)).at[0].set(x),
                                         dict(z=z0, t=t0, acc=acc0))
+        c["kept"] = jax.tree.map(lambda x: jnp.zeros((every,) + jnp.shape(x), jnp.result_type(x)),
+                                 dict(z=z0, Z=guess, t=t0, acc=acc0))
     return c
 
 
@@ -243,7 +245,9 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         dense: keep every accepted node's time and state (``node_t``, ``node_z``) and, True,
             every element's polynomial (``W``); "nodes": the nodes alone (``save_at="steps"``).
         every: keep ``checkpoints`` (z, t and acc at every ``every``-th accepted node, from the
-            first), for the derivatives (``_adjoint``); None: none.
+            first) and ``kept``, the start z, t, acc and root Z of the accepted elements since
+            the last checkpoint (element n in row n mod every), for the derivatives
+            (``_adjoint``); None: neither.
     Returns:
         the final carry, a dict: ``t``, ``z``, ``status``, counts, ``hs`` (the accepted steps),
         ``h_min``, ``h_max``, ``estimate``, and ``saved``, the dense buffers, the events (with
@@ -360,11 +364,14 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             new[key] = jnp.where(accept, end[key], c[key])
         if observe is not None:
             new["acc"] = jax.tree.map(lambda a, b: jnp.where(accept, b, a), c["acc"], observe(c["acc"], *view(end["z"])))
-        if every:  # the accepted node whose index is a multiple of ``every``
+        if every:  # the accepted node whose index is a multiple of ``every``, and the element's root
             index = c["steps"] + 1
             slot = jnp.where(accept & (index % every == 0), index // every, max_steps + 1)
             node = dict(z=end["z"], t=end["t"], acc=new.get("acc"))
             new["checkpoints"] = jax.tree.map(lambda a, x: a.at[slot].set(x, mode="drop"), c["checkpoints"], node)
+            row = jnp.where(accept, c["steps"] % every, every)
+            root = dict(z=z, Z=jax.lax.stop_gradient(Z), t=t, acc=c.get("acc"))
+            new["kept"] = jax.tree.map(lambda a, x: a.at[row].set(x, mode="drop"), c["kept"], root)
         attempts = c["attempts"] + active
         out_of_steps = active & ~finished & (attempts >= max_steps) & ~fail
         new.update(

@@ -14,8 +14,10 @@ took, whatever ``max_steps``:
   ``jax.jvp`` at its root, found again from z_n;
 * reverse (``jax.grad``, ``jax.vjp``, ``_adjoint_sweep``): backwards, each element by
   ``jax.vjp``. The forward run keeps z, t (and a sweep's diagnostics) at every ``every``-th
-  node (checkpoints, ``every`` ~ sqrt(max_steps)); the adjoint solves each stretch of
-  ``every`` elements again from its checkpoint, then takes it backwards.
+  node (checkpoints) and the roots of the elements since the last one (``Spec.stretch``:
+  ``KEPT_ELEMENTS``, sqrt(max_steps) with ``checkpoint``); the adjoint takes that last
+  stretch backwards from the kept roots, then each earlier stretch after solving it again
+  from its checkpoint into the same buffer. A run of at most ``every`` elements is solved once.
 
 ``linear_map`` makes the forward sweep an operation that JAX transposes into the reverse one.
 The times: a constant h's element n starts at t0 + n h; a controller's at t0 plus the steps
@@ -39,6 +41,10 @@ from ._controllers import symbolic_zero as _symbolic_zero
 from ._march import bind_args, continued, element_residual, state_scale
 from ._solve import Options, Status, implicit, initial_matrix, solve
 
+# the elements whose roots (z_n, t_n, Z_n) a gradient keeps (``Spec.stretch``), at most so many and
+# so many bytes of them: a run that fits is not solved again
+KEPT_ELEMENTS, KEPT_BYTES = 512, 2 ** 24
+
 # the outputs of a run that have derivatives; the rest (counts, status, estimates, places) have none
 DIFFERENTIABLE = ("z", "t", "saved", "ev_t", "ev_z", "node_t", "node_z", "W", "acc")
 INPUTS = ("q0", "p0", "args", "method", "t0", "t1", "ts", "h")
@@ -56,6 +62,7 @@ class Spec:
             dense: True, or "nodes" for the node states alone).
         observe, acc0: a sweep's diagnostics, ``observe(acc, q, p)`` folded over the accepted
             nodes from ``acc0(q0, p0, args)``; or None.
+        checkpoint: keep the fewest roots (``stretch``): memory for time.
     """
 
     H: object
@@ -67,12 +74,19 @@ class Spec:
     estimate: object = False
     observe: object = None
     acc0: object = None
+    checkpoint: bool = False
 
-    @property
-    def every(self):
-        """The nodes between checkpoints: sqrt(max_steps), so that the checkpoints and the
-        elements of one stretch each take about sqrt(max_steps) states of memory."""
-        return max(1, math.isqrt(self.max_steps))
+    def stretch(self, root):
+        """The elements between checkpoints, whose roots (``root``: the shapes of one element's
+        z, t, Z and acc) a gradient keeps: ``KEPT_ELEMENTS``, or as many as ``KEPT_BYTES`` hold,
+        at most ``max_steps``, and at least sqrt(max_steps) (then the checkpoints and one
+        stretch each take about sqrt(max_steps) elements of memory), which is all with
+        ``checkpoint``."""
+        fewest = max(1, math.isqrt(self.max_steps))
+        if self.checkpoint:
+            return fewest
+        size = sum(math.prod(x.shape) * x.dtype.itemsize for x in jax.tree.leaves(root))
+        return min(self.max_steps, max(fewest, min(KEPT_ELEMENTS, KEPT_BYTES // size)))
 
 
 def run(spec, inputs):
@@ -95,8 +109,8 @@ def run(spec, inputs):
         (inputs,), (d_inputs,) = primals, tangents
         leaves, full, pick, wanted = _tangents(spec, inputs, d_inputs)
         inputs = _first_order(inputs)
-        c = _forward(spec, inputs, every=spec.every)
-        out = {k: v for k, v in c.items() if k != "checkpoints"}
+        c = _forward(spec, inputs, every=_stretch(spec, inputs))
+        out = {k: v for k, v in c.items() if k not in ("checkpoints", "kept")}
         differentiable = {k: out[k] for k in DIFFERENTIABLE if out.get(k) is not None}
         if not leaves:  # no input with a derivative moves
             return out, jax.tree.map(_zero_tangent, out)
@@ -219,6 +233,16 @@ def _start(spec, q0, p0, args, t0):
     return jnp.concatenate([z_q0, z_p0]), run_args
 
 
+def _stretch(spec, inputs):
+    """``spec.stretch`` for the elements of this run (their shapes)."""
+    def root():
+        z0, _ = _start(spec, inputs["q0"], inputs["p0"], inputs["args"], inputs["t0"])
+        acc = None if spec.observe is None else spec.acc0(inputs["q0"], inputs["p0"], inputs["args"])
+        return dict(z=z0, Z=inputs["method"].initial_guess(*jnp.split(z0, 2)), t=z0[0], acc=acc)
+
+    return spec.stretch(jax.eval_shape(root))
+
+
 def _problem(spec, inputs):
     """``(H~, s~, clock)`` of the problem the loop solves."""
     fn, _, _, _, s, clock = _adaptive.problem(spec.H, spec.transform, inputs["q0"], inputs["p0"], inputs["t0"],
@@ -237,7 +261,7 @@ def _forward(spec, inputs, every):
                       every=every)
     keep = ("z", "t", "status", "steps", "rejected", "attempts", "total", "most", "trips", "lenient", "h_min", "h_max",
             "estimate", "hs", "ev_t", "ev_z", "ev_n", "ev_alpha", "ev_count", "ended", "node_t", "node_z", "W", "acc",
-            "checkpoints")
+            "checkpoints", "kept")
     out = {k: c[k] for k in keep if k in c}
     if inputs["ts"] is not None:
         out["saved"], out["places"] = c["saved"][0], c["saved"][1:]
@@ -512,7 +536,7 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
     times = tuple(inputs[k] for k in ("t0", "t1", "h"))
     options = _resolve_options(spec, inputs)
     hold = _held(wanted)
-    dtype, every, steps = z0.dtype, spec.every, c["steps"]
+    dtype, steps, every = z0.dtype, c["steps"], c["kept"]["z"].shape[0]
     zeros = lambda tree: jax.tree.map(jnp.zeros_like, tree)
     if "saved" in ct:
         elements, alphas, nodes = _places(c)
@@ -534,15 +558,13 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
     acc_bar = ct.get("acc")
     ts_bar = None if inputs["ts"] is None else jnp.zeros_like(inputs["ts"])
     guess = inputs["method"].initial_guess(*jnp.split(z0, 2))
-    checkpoints = c["checkpoints"]
 
-    def segment(s):
-        k, lam, acc_bar, theta_bar, times_bar, ts_bar, ok = s
+    def again(k, kept, ok):
+        """Stretch k's elements found again, forwards from its checkpoint, their roots in ``kept``."""
         first = k * every
-        length = jnp.minimum(steps, first + every) - first
-        start = jax.tree.map(lambda a: a[k], checkpoints)
+        start = jax.tree.map(lambda a: a[k], c["checkpoints"])
 
-        def again(i, r):  # the stretch's elements found again, forwards
+        def found(i, r):
             z, t, acc, matrix, previous, ok, kept = r
             h_n = c["hs"][first + i]
             Z, matrix, solved = _resolve(fn, theta, z, h_n, previous, matrix, options)
@@ -552,13 +574,17 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
             t1 = t + h_n if clock is None else z1[clock]
             return z1, t1, acc1, matrix, (z, Z, h_n, jnp.ones((), bool)), ok & solved, kept
 
-        stretch = lambda x: jnp.zeros((every,) + jnp.shape(x), jnp.result_type(x))
-        kept = jax.tree.map(stretch, dict(z=z0, Z=guess, t=jnp.zeros((), dtype), acc=start["acc"]))
         previous = (z0, guess, jnp.ones((), dtype), jnp.zeros((), bool))
         r = (start["z"], start["t"], start["acc"], initial_matrix(guess, options), previous, ok, kept)
-        *_, ok, kept = jax.lax.fori_loop(0, length, again, r)
+        *_, ok, kept = jax.lax.fori_loop(0, jnp.minimum(steps, first + every) - first, found, r)
+        return kept, ok
 
-        def back(j, s):  # backwards through the stretch
+    def backwards(k, kept, s):
+        """Stretch k's elements taken backwards, from their roots in ``kept``."""
+        first = k * every
+        length = jnp.minimum(steps, first + every) - first
+
+        def back(j, s):
             lam, acc_bar, theta_bar, times_bar, ts_bar = s
             i = length - 1 - j
             n = first + i
@@ -602,12 +628,18 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
             times_bar = tuple(a + b for a, b in zip(times_bar, t_b))
             return lam, acc_bar, theta_bar, times_bar, local["ts"]
 
-        lam, acc_bar, theta_bar, times_bar, ts_bar = jax.lax.fori_loop(
-            0, length, back, (lam, acc_bar, theta_bar, times_bar, ts_bar))
-        return k - 1, lam, acc_bar, theta_bar, times_bar, ts_bar, ok
+        return jax.lax.fori_loop(0, length, back, s)
 
-    s = ((steps + every - 1) // every - 1, lam, acc_bar, zeros(theta), times_bar, ts_bar, c["status"] == Status.SUCCESS)
-    _, lam, acc_bar, (method_bar, run_args_bar), times_bar, ts_bar, ok = jax.lax.while_loop(
+    def segment(s):  # an earlier stretch
+        k, kept, ok, *bars = s
+        kept, ok = again(k, kept, ok)
+        return k - 1, kept, ok, *backwards(k, kept, tuple(bars))
+
+    # the last stretch from the forward run's roots, then the earlier ones, the roots written over
+    last = (steps + every - 1) // every - 1
+    bars = backwards(jnp.maximum(last, 0), c["kept"], (lam, acc_bar, zeros(theta), times_bar, ts_bar))
+    s = (last - 1, c["kept"], c["status"] == Status.SUCCESS, *bars)
+    _, _, ok, lam, acc_bar, (method_bar, run_args_bar), times_bar, ts_bar = jax.lax.while_loop(
         lambda s: s[0] >= 0, segment, s)
     t0_bar, t1_bar, h_bar = times_bar
     if spec.dense:

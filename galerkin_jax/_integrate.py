@@ -219,7 +219,10 @@ def integrate(
             Only outside ``jit``/``vmap``/``grad``: there the status is traced, and ``throw=True``
             raises a ``TypeError`` before anything runs (read ``Solution.status`` instead).
         checkpoint: rematerialise each saved block in reverse mode: a gradient then stores
-            one state per save instead of every element's residuals. Static.
+            one state per save instead of every element's residuals. A run whose steps are
+            chosen as it runs (a controller, ``save_at``, events) keeps, for a gradient, the
+            roots of up to 2 MiB of elements, solving only the elements before those again;
+            ``checkpoint`` keeps sqrt(max_steps) of them (docs/derivatives.md). Static.
         dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps), or
             O(max_steps) for a controller's run. Static.
         progress: show a progress bar (tqdm if installed, else lines on stderr), ticked from
@@ -318,7 +321,7 @@ def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps
     if max_steps is None:
         max_steps = _span.fixed_step_count(t0, t1, h)[0] if controller is None and concrete else DEFAULT_MAX_STEPS
     return _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options,
-                               dense, estimate, nodes)
+                               dense, estimate, nodes, checkpoint)
 
 
 def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
@@ -371,15 +374,15 @@ def _integrate(H, q0, p0, method, h, args, t0, t1, h_last, n_steps, save_every, 
     return solution(final, saved, kept, q0, p0, h, save_every, t0, t_end)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14, 15))
+@functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14, 15, 16))
 def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options, dense,
-                        estimate, nodes):
+                        estimate, nodes, checkpoint):
     """A run whose steps are not known in advance (``_adaptive.run``), with the derivatives of the
     run that takes the same steps (``_adjoint``); ``nodes``: its saves are every accepted node
     (``save_at="steps"``), padded with t = inf and NaN states to ``max_steps + 1``."""
     transform = controller if isinstance(controller, TimeTransform) else None
     spec = _adjoint.Spec(H, transform, options, max_steps, dense=True if dense else ("nodes" if nodes else False),
-                         events=events, estimate=estimate)
+                         events=events, estimate=estimate, checkpoint=checkpoint)
     inputs = dict(q0=q0, p0=p0, args=args, method=method, controller=None if transform else controller, t0=t0,
                   t1=t1, ts=ts, h=h)
     c = _adjoint.run(spec, inputs)

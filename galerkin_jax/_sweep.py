@@ -154,12 +154,14 @@ def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, esti
     return _result(final, runs, invariants, reference)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4))
-def _run_adaptive(H, invariants, max_steps, options, estimate, configs, reference, t0, t1, controller):
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5))
+def _run_adaptive(H, invariants, max_steps, options, estimate, checkpoint, configs, reference, t0, t1, controller):
     """A controller's runs to ``t1``, each member its own steps, with derivatives (``_adjoint``)."""
-    acc0, observe = _diagnostics(H, dict(invariants))
+    invariants = dict(invariants)
+    acc0, observe = _diagnostics(H, invariants)
     transform = controller if isinstance(controller, TimeTransform) else None
-    spec = _adjoint.Spec(H, transform, options, max_steps, estimate=estimate, observe=observe, acc0=acc0)
+    spec = _adjoint.Spec(H, transform, options, max_steps, estimate=estimate, observe=observe, acc0=acc0,
+                         checkpoint=checkpoint)
 
     def one(method, q0, p0, h, args, controller):
         c = _adjoint.run(spec, dict(q0=q0, p0=p0, args=args, method=method, controller=controller, t0=t0, t1=t1,
@@ -234,7 +236,7 @@ def sweep(
         checkpoint: rematerialise blocks of elements in reverse mode (blocks of ``save_every``,
             or of the divisor of ``n_steps`` nearest its square root: choose an ``n_steps``
             with one), so that a gradient stores one carry per block instead of every
-            element's residuals. Static.
+            element's residuals; with a ``controller``, as in ``integrate``. Static.
         progress: show a progress bar over the elements (all members advance together). Static.
         error_estimate: True, "full" or False, as in ``integrate``. Static.
     Returns:
@@ -276,7 +278,7 @@ def sweep(
                       bool(progress), estimate, *inputs[:2], *span)
     else:
         result = _run_adaptive(H, tuple(invariants.items()), max_steps or DEFAULT_MAX_STEPS, options, estimate,
-                               inputs[0], inputs[1], *span, inputs[2])
+                               checkpoint, inputs[0], inputs[1], *span, inputs[2])
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
     if throw:

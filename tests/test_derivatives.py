@@ -45,13 +45,13 @@ def unpack(x):
 X0 = pack(Q0, P0, 1.0, 1e-3, 0.1, T1, SAVE, 0.047, GAUSS.points, GAUSS.weights)  # 104.3 elements of h
 
 
-def outputs(controller, event, x, frozen=()):
+def outputs(controller, event, x, frozen=(), **kwargs):
     """Every output of one run, flattened; ``frozen``: inputs held at X0 (not differentiated)."""
     x = jnp.where(jnp.isin(jnp.arange(X0.size), jnp.asarray(frozen, int)), X0, x)
     q0, p0, args, t0, t1, ts, h, rule = unpack(x)
     h = unpack(X0)[6] if H_INDEX in frozen else h  # a controller's h is no input to differentiate (it raises)
     sol = gj.integrate(H, q0, p0, method=gj.CG(4, rule), h=h, t0=t0, t1=t1, args=args, controller=controller,
-                       save_at=ts, events=event, dense=True)
+                       save_at=ts, events=event, dense=True, **kwargs)
     q, p = sol.evaluate(jnp.array([1.2, 2.9]))
     found = jnp.arange(event.capacity) < 3  # the first three events (the run has five)
     return jnp.concatenate([sol.q.ravel(), sol.p.ravel(), q.ravel(), p.ravel(),
@@ -69,11 +69,15 @@ SECTION = gj.Event(lambda t, q, p: jnp.sin(3.0 * t) - 0.5 * q[0], capacity=8)
 def test_every_output_of_a_run_against_central_differences(kind):
     """The measured agreement, relative to the largest entry of J t: fixed steps 4e-10,
     PID 1e-9 and the time-transformed run 3e-9 (central differences of step 1e-6 err by about
-    1e-10 here, and a controlled run's by its tolerance over the step, 1e-13 / 1e-6)."""
+    1e-10 here, and a controlled run's by its tolerance over the step, 1e-13 / 1e-6). Reverse
+    mode takes the PID run's 635 elements in 10 stretches solved again from checkpoints
+    (``checkpoint=True``: sqrt(max_steps) = 64 each), the time-transformed run's 50 from the
+    roots the forward run kept."""
     controller = {"fixed": None, "pid": gj.PIDController(1e-13, 1e-13), "time-transform": gj.TimeTransform()}[kind]
     frozen = {"fixed": [], "pid": RULE + [H_INDEX], "time-transform": [H_INDEX]}[kind]
-    helpers.check_first_derivatives(lambda x: outputs(controller, SECTION, x, frozen), (X0,), eps=2e-7, atol=1e-7,
-                                    rtol=2e-6)
+    kwargs = dict(checkpoint=True) if kind == "pid" else {}
+    helpers.check_first_derivatives(lambda x: outputs(controller, SECTION, x, frozen, **kwargs), (X0,), eps=2e-7,
+                                    atol=1e-7, rtol=2e-6)
 
 
 TERMINAL = gj.Event(lambda t, q, p: q[1] + 0.2, direction=-1, terminal=True)
@@ -83,13 +87,16 @@ TERMINAL = gj.Event(lambda t, q, p: q[1] + 0.2, direction=-1, terminal=True)
 def test_a_terminal_events_time_and_state_end_the_run_and_move_with_the_inputs(kind):
     """The run ends at the event: its last state and time are the event's, and they move with
     the inputs as the implicit function theorem on g(t*, z(t*)) = 0 says (central differences of
-    the run include the moving event time)."""
+    the run include the moving event time). Reverse mode takes the PID run's 528 elements from
+    the kept roots, the time-transformed run's 37 in stretches of sqrt(max_steps) = 10 solved
+    again from checkpoints."""
     controller = {"pid": gj.PIDController(1e-13, 1e-13), "time-transform": gj.TimeTransform()}[kind]
+    kwargs = dict(checkpoint=True, max_steps=100) if kind == "time-transform" else {}
 
     def end(x):
         q0, p0, args, t0, t1, _, _, rule = unpack(jnp.where(jnp.isin(jnp.arange(X0.size), jnp.asarray(RULE)), X0, x))
         sol = gj.integrate(H, q0, p0, method=gj.CG(4, rule), h=0.05, t0=t0, t1=t1, args=args, controller=controller,
-                           events=TERMINAL)
+                           events=TERMINAL, **kwargs)
         return jnp.concatenate([sol.q[-1], sol.p[-1], sol.t[-1:], sol.events.t[:1], sol.events.q[0]])
 
     sol = gj.integrate(H, Q0, P0, method=gj.CG(4, GAUSS), h=0.05, t0=0.1, t1=T1, args=dict(gm=1.0, j2=1e-3),
@@ -136,7 +143,8 @@ def test_derivatives_that_do_not_exist_raise_naming_the_input():
 
 def test_a_gradient_over_a_million_steps_of_128_unknowns_fits_in_a_bound():
     """Reverse mode keeps one step size per attempt slot (8 bytes x max_steps), the state every
-    sqrt(max_steps) nodes and the sqrt(max_steps) elements of one stretch: XLA's temporary
+    sqrt(max_steps) nodes and the roots of one stretch of sqrt(max_steps) elements (more than 512
+    elements: ``_adjoint.Spec.stretch``), one buffer for the forward run and the adjoint: XLA's temporary
     buffers of the compiled gradient of a controlled run of the FPUT chain of 64 masses (128
     unknowns, 512 per element) at max_steps = 10^6 measure 14.6 MB; the bound, 8 bytes x
     max_steps plus 8 MB, holds with room, where storing every element would take 4 GB."""
@@ -152,3 +160,28 @@ def test_a_gradient_over_a_million_steps_of_128_unknowns_fits_in_a_bound():
 
     memory = jax.jit(jax.grad(loss)).lower(jnp.asarray(scene.q0)).compile().memory_analysis()
     assert memory.temp_size_in_bytes < 8 * 10**6 + 8e6
+
+
+def test_a_sweeps_gradient_from_the_kept_roots_equals_one_from_roots_found_again():
+    """A controller's sweep keeps each member's roots for reverse mode (its diagnostics folded
+    along, ``_sweep._diagnostics``); with ``checkpoint=True`` each member's run (164 and 158
+    elements) is cut into stretches of sqrt(max_steps) = 20 solved again from checkpoints. The
+    two Jacobians of the final states agree to round-off: measured 3e-15 relative (the roots
+    found again agree with the run's to round-off)."""
+    controller = gj.PIDController(1e-10, 1e-10)
+
+    def run(x, checkpoint):
+        q0, p0, args, _, t1, _, _, rule = unpack(x)
+        configs = gj.Configs(method=gj.stack_methods([gj.CG(4, rule)] * 2), h=jnp.array([0.047, 0.047]),
+                             q0=jnp.stack([q0, 1.01 * q0]), p0=jnp.stack([p0, p0]),
+                             args=jax.tree.map(lambda a: jnp.stack([a, a]), args))
+        result = gj.sweep(H, configs, t1=t1, controller=controller, max_steps=400, checkpoint=checkpoint,
+                          invariants=dict(L=lambda q, p: q[0] * p[1] - q[1] * p[0]))
+        # the diagnostics (maxima over the nodes) go through the adjoint sweep's path for them, but
+        # their derivative is that of the node where the maximum falls, which round-off can move
+        diagnostics = jnp.sum(result.energy_error) + jnp.sum(result.invariant_errors["L"])
+        return jnp.concatenate([result.q.ravel(), result.p.ravel(), 0.0 * diagnostics[None]])
+
+    kept, again = (jax.jacrev(lambda x: run(x, checkpoint))(X0) for checkpoint in (False, True))
+    assert np.all(np.isfinite(kept)) and float(jnp.max(jnp.abs(kept))) > 1.0
+    assert float(jnp.max(jnp.abs(again - kept)) / jnp.max(jnp.abs(kept))) < 1e-12
