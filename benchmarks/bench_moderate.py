@@ -13,8 +13,9 @@ j = 1..10, the same for every solver: every run is cut into ten segments whose e
 land on (fixed steps: a tenth of them each; controlled runs: a run to T / 10 per segment, the
 next one's first step the mean step of the last, the first's 1e-3 T / 10).
 
-The solvers: galerkin_jax cG(k) + Gauss k (k = 3, 4, 6) at fixed steps and cG(4), cG(6) with a
-PIDController (rtol = atol); diffrax Tsit5 and Dopri8, fixed steps and PID (rtol = atol);
+The solvers: galerkin_jax cG(k) + Gauss k (k = 3, 4, 6) at fixed steps, cG(4), cG(6) with a
+PIDController (rtol = atol), and cG(3), cG(4) at fixed steps iterating to 1e-10 of the unknowns
+instead of their round-off (``SolverOptions(tolerance=1e-10)``); diffrax Tsit5 and Dopri8, fixed steps and PID (rtol = atol);
 velocity Verlet and Yoshida's fourth-order triple jump of it (separable systems), the implicit
 midpoint rule (fixed-point iteration to round-off) and its triple jump (the chain, where no
 explicit symplectic splitting applies), written here in plain JAX (``lax.fori_loop``). No
@@ -137,17 +138,19 @@ def counts(status=0, steps=0, rejected=0, evaluations=0, iterations=0):
 # galerkin_jax
 
 
-def cg_fixed(k):
+def cg_fixed(k, tolerance=0.0):
     """cG(k) + Gauss k at ``n = SAVES * m`` fixed steps, every m-th state saved: ``integrate(...,
-    n_steps=n, save_every=m)``, a static knob (one compilation per m). Evaluations: ``evaluations``."""
+    n_steps=n, save_every=m)``, a static knob (one compilation per m). Evaluations: ``evaluations``.
+    ``tolerance``: ``SolverOptions.tolerance`` (0: iterate to round-off)."""
     method = gj.CG(k, gj.gauss_legendre(k))
+    solver = gj.SolverOptions(tolerance=tolerance)
 
     def build(system, m):
         n = SAVES * m
 
         def run(q0, p0):
             sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=m,
-                               error_estimate=False)
+                               error_estimate=False, solver=solver)
             it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
             return Out(sol.q, sol.p, *counts(sol.status, steps, 0, evaluations(system, k, it, steps), it))
 
@@ -166,19 +169,20 @@ def evaluations(system, k, iterations, attempts):
     return k * halves * (iterations + attempts)
 
 
-def cg_fixed_search(k):
+def cg_fixed_search(k, tolerance=0.0):
     """The search's stand-in for ``cg_fixed(k)``, compiled once: the same fixed steps with h
     traced, through ``integrate(..., t1=T, save_at=...)`` (a while loop over elements of the
     constant h, the states at the save times from the element polynomials, which end there).
     Its errors equal the static runs' to six digits (LJ13, cG(4), seven step counts checked)."""
     method = gj.CG(k, gj.gauss_legendre(k))
+    solver = gj.SolverOptions(tolerance=tolerance)
 
     def make(system):
         ts = jnp.linspace(0.0, system.T, SAVES + 1)
 
         def run(q0, p0, m):
             sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / (SAVES * m), t1=system.T, save_at=ts,
-                               max_steps=SAVES * MAX_STEPS, error_estimate=False)
+                               max_steps=SAVES * MAX_STEPS, error_estimate=False, solver=solver)
             it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
             return Out(sol.q, sol.p, *counts(sol.status, steps, 0, evaluations(system, k, it, steps), it))
 
@@ -384,6 +388,9 @@ def solver_list(quick):
     cg = [Solver(f"cG({k})+Gauss {k}", True, "steps", 2 * k, cg_fixed_search(k), start, final=cg_fixed(k))
           for k, start in ((3, 1.0), (4, 1.0), (6, 1.5))]
     pid = [Solver(f"cG({k})+Gauss {k} PID", True, "tol", 1.0, cg_pid(k), 1e-4) for k in (4, 6)]
+    # iterating to 1e-10 of the unknowns instead of their round-off (``SolverOptions.tolerance``)
+    loose = [Solver(f"cG({k})+Gauss {k} tolerance 1e-10", True, "steps", 2 * k, cg_fixed_search(k, 1e-10), 1.0,
+                    final=cg_fixed(k, 1e-10)) for k in (3, 4)]
     named_peers = [
         Solver("diffrax Tsit5", False, "steps", 5, diffrax_run("Tsit5", False), 0.5),
         Solver("diffrax Dopri8", False, "steps", 8, diffrax_run("Dopri8", False), 1.0),
@@ -397,7 +404,7 @@ def solver_list(quick):
     ]
     if quick:
         return [cg[1], pid[1]] + named_peers
-    return cg + pid + named_peers
+    return cg + pid + loose + named_peers
 
 
 SCALE_STEP = 0.05  # h0 of ``Solver.start``: a step that resolves every system's motion

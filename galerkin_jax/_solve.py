@@ -54,7 +54,8 @@ updates costs little more than one; a rejected block is undone as a whole.
 Stopping rule (``_converged``, correctness; the policy above is ``_policy``, speed): a member
 stops when the error left after its update, ``|dZ| theta / (1 - theta)`` (theta the
 contraction rate: a block's last two updates' ratio, or in Newton's one update per check the
-largest ratio of the element), is below the round-off ``eps |Z|`` of the unknowns, or when its
+largest ratio of the element), is below the round-off ``eps |Z|`` of the unknowns (or
+``SolverOptions.tolerance`` of them, where asked), or when its
 updates stop shrinking: at the round-off of the state (``noise``) whatever K (there also when
 they still shrink, by less than half, past the member's patience), below ``sqrt(eps)`` of the
 state only with a fresh Newton matrix (the floor of an ill-conditioned system). The last two
@@ -401,8 +402,9 @@ def _converged(problem, c, m):
     floor = jnp.sqrt(eps) * (problem.scale + z_size + jnp.finfo(step.dtype).tiny)
     noisy = step <= problem.solver.noise * eps * (problem.scale + z_size)  # round-off, not a slow K
     grown = (step >= m["before"]) | (step >= c["step"])  # within the block, or since the last one
-    # the error left after this update is below the round-off of the unknowns
-    strict = (step == 0) | ((theta <= 0.5) & (step * theta <= (1.0 - theta) * eps * z_size))
+    # the error left after this update is below the round-off of the unknowns (or the tolerance)
+    limit = max(eps, problem.solver.tolerance)
+    strict = (step == 0) | ((theta <= 0.5) & (step * theta <= (1.0 - theta) * limit * z_size))
     # round-off that still shrinks, by less than half an update, past the member's patience
     settled = noisy & ~grown & (theta > 0.5) & m["patience"]
     accept_here = (strict | settled) & ~m["bad"] & (r_size <= floor)

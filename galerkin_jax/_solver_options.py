@@ -28,6 +28,13 @@ class SolverOptions:
         noise: updates below ``noise * eps`` of the state are round-off (eps of the dtype):
             they may stop shrinking without that meaning a slow matrix. The stopping rule
             reads it.
+        tolerance: the error of an element's unknowns, relative to their size, at which it
+            stops iterating; 0 (the default): their round-off, eps. Above eps the iteration
+            error, below ``tolerance`` after the last update, adds to every element's error,
+            and systematically (the predictor's miss is smooth from element to element): the
+            conserved quantities of a method (energy, symplecticity, momentum) then hold to
+            about that per element, not to round-off. For runs whose target error is far above
+            round-off (docs/solver.md, "Iterating to a tolerance").
         dense_limit (unknowns): the largest system that keeps a dense Newton matrix (n^2
             memory per member, an n^3 inverse per refresh); above it Newton is Newton-Krylov.
         small (unknowns): systems up to this size solve their first element by Newton (the
@@ -93,6 +100,7 @@ class SolverOptions:
     max_iterations: int = 48
     krylov: bool = False
     noise: float = 100.0
+    tolerance: float = 0.0
     dense_limit: int = 256
     small: int = 32
     sweep_dimension: int = 8
@@ -134,6 +142,9 @@ class SolverOptions:
             values = getattr(self, name) if name == "theta_newton" else (getattr(self, name),)
             if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in values):
                 raise ValueError(f"SolverOptions.{name} must be positive, got {getattr(self, name)!r}.")
+        if isinstance(self.tolerance, bool) or not isinstance(self.tolerance, (int, float)) or not (
+                0.0 <= self.tolerance < 1.0):
+            raise ValueError(f"SolverOptions.tolerance must be a number in [0, 1), got {self.tolerance!r}.")
         if not isinstance(self.krylov, bool):
             raise TypeError(f"SolverOptions.krylov must be a bool, got {self.krylov!r}.")
 
