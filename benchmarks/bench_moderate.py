@@ -37,7 +37,9 @@ Writes results/moderate.json (every run) and results/moderate.md (the tables, al
 ``--quick`` (short spans, small systems, a few solvers; it also counts the calls of H per
 residual by a callback, ``count_calls``) and ``--only`` add a suffix to these names unless
 ``--name`` is given. ``--gradients`` only measures one gradient of each system's H, alone and
-vmapped over k states (``gradient_costs``, results/moderate_gradients.json).
+vmapped over k states (``gradient_costs``, results/moderate_gradients.json); ``--split`` where an
+element's time goes, fields, the residual's algebra, the solver's own work (``element_split``,
+results/moderate_split.json).
 """
 
 import os
@@ -749,6 +751,63 @@ def gradient_costs(system, points=(3, 4, 6), calls=200):
     return row
 
 
+# steps of cG(3) over the span (each system's count at 1e-6, ``results/moderate.md``) for the split
+SPLIT_STEPS = {"LJ13": 1520, "LJ55": 270, "Morse13": 1810, "Morse55": 270, "Plummer32": 270, "Chain10": 320}
+
+
+def element_split(system, k=3, calls=200):
+    """Where an element's time goes (issue 37, item 2): cG(k) at n and 4 n fixed steps (n from
+    ``SPLIT_STEPS``) gives two (updates per element, µs per element) points, whose line is
+    ``fixed + updates x per_update``; one residual of the element equations (the sweep's, as the
+    solver iterates it) and its field evaluations alone (dH at k states, both halves on the
+    chain, dH/dq on the separable systems) are timed in ``calls`` chained calls in one program.
+    per_update - residual is the solver's own work per update (its checks and their kernel
+    launches), residual - field the polynomial algebra around the field."""
+    from galerkin_jax import _march
+
+    method = gj.CG(k, gj.gauss_legendre(k))
+    q0, p0 = jnp.asarray(system.q0), jnp.asarray(system.p0)
+    points = []
+    for n in (SPLIT_STEPS[system.name], 4 * SPLIT_STEPS[system.name]):
+        run = lambda q0, p0: gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=n,
+                                          error_estimate=False)
+        _, call = compiled(run, q0, p0)
+        sol = call(q0, p0)
+        points.append((float(sol.stats["num_newton_iterations"]) / n, 1e6 * best_time(call, q0, p0, repeat=5) / n))
+    (u1, t1), (u2, t2) = points
+    per_update = (t1 - t2) / (u1 - u2)
+    fixed = t1 - u1 * per_update
+    options = _march.solver_options(method)
+    h = jnp.asarray(system.T / SPLIT_STEPS[system.name])
+    Z = _march.solve_element(method, system.H, q0, p0, h, None, options)[2]
+    fn = _march.element_residual(system.H, options.solver.sweep_dimension)
+    separable_field = system.V is not None
+
+    def field(Z):
+        X = q0 + jnp.linspace(0.0, 1.0, k)[:, None] * Z[0, : q0.size]  # k states near the element's
+        if separable_field:
+            return jax.vmap(jax.grad(system.H, argnums=0), in_axes=(0, None))(X, p0)
+        return jnp.concatenate(jax.vmap(jax.grad(system.H, argnums=(0, 1)), in_axes=(0, None))(X, p0), axis=1)
+
+    def cost(f, x):
+        loop = lambda x: jax.lax.fori_loop(0, calls, lambda _, x: x + 1e-30 * jnp.mean(f(x)), x)
+        _, call = compiled(loop, x)
+        return 1e6 * best_time(call, x, repeat=5) / calls
+
+    residual_us = cost(lambda Z: fn(Z, (method, q0, p0, h, None)), Z)
+    field_us = cost(field, Z)
+    row = dict(k=k, steps=[SPLIT_STEPS[system.name], 4 * SPLIT_STEPS[system.name]],
+               updates_per_element=[u1, u2], us_per_element=[t1, t2], us_per_update=per_update,
+               us_fixed_per_element=fixed, us_residual=residual_us, us_field=field_us,
+               us_solver_per_update=per_update - residual_us, us_algebra_per_residual=residual_us - field_us)
+    share = lambda x: 100 * x / t1
+    print(f"  {system.name}: {t1:.1f} us an element at n = {points and SPLIT_STEPS[system.name]} ({u1:.1f} updates): "
+          f"fields {share(u1 * field_us):.0f} %, the residual's algebra {share(u1 * (residual_us - field_us)):.0f} %, "
+          f"the solver's checks {share(u1 * (per_update - residual_us)):.0f} %, per element {share(fixed):.0f} % "
+          f"(per update {per_update:.2f} us: residual {residual_us:.2f}, of it fields {field_us:.2f})", flush=True)
+    return row
+
+
 # ---------------------------------------------------------------- main
 
 
@@ -760,6 +819,8 @@ def main():
                         "default 3, --quick 0.5)")
     parser.add_argument("--gradients", action="store_true", help="only the price of one gradient per system "
                         "(gradient_costs; writes moderate_gradients.json)")
+    parser.add_argument("--split", action="store_true", help="only where an element's time goes (element_split; "
+                        "writes moderate_split.json)")
     parser.add_argument("--name", help="output name (default moderate, with _quick and the systems run when not all)")
     options = parser.parse_args()
     available = system_list(options.quick)
@@ -769,8 +830,12 @@ def main():
         parser.error(f"unknown systems {unknown}; choose from {list(available)}")
     cap_s = options.cap or (0.5 if options.quick else 3.0)
     suffix = ("_quick" if options.quick else "") + ("" if chosen == list(available) else "_" + "_".join(chosen))
-    name = options.name or "moderate" + ("_gradients" if options.gradients else "") + suffix
+    name = options.name or "moderate" + ("_gradients" if options.gradients else "_split" if options.split else
+                                         "") + suffix
     before, start = machine(), time.perf_counter()
+    if options.split:
+        write(name, {"machine_before": before, "split": {n: element_split(available[n]()) for n in chosen}})
+        return
     if options.gradients:
         write(name, {"machine_before": before, "gradients_us": {n: gradient_costs(available[n]()) for n in chosen}})
         return
