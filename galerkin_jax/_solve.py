@@ -97,7 +97,8 @@ class Status(enum.IntEnum):
 
 MESSAGES = {
     Status.SUCCESS: (
-        "Every implicit solve converged: to round-off, except the steps counted in "
+        "Every implicit solve converged: to round-off (or to SolverOptions.tolerance, where set), "
+        "except the steps counted in "
         "stats['num_accepted_stalled'], whose updates stopped shrinking with the residual below "
         "sqrt(eps) of the state (the floor of an ill-conditioned system). This says nothing about "
         "accuracy: see error_estimate for the local error of the steps."
