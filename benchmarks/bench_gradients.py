@@ -11,9 +11,9 @@ max_steps: the beta-FPUT chain of 6 masses (12 unknowns; ``scenes.fput``), cG(4)
     RecursiveCheckpointAdjoint) beside it.
 peers: Kepler e = 0.9 over one orbit (cG(6) + Gauss 7) and FPUT N = 64 (cG(4) + Gauss 4, T = 10):
     forward and gradient time of a PID run (max_steps = 10^5; the gradient also at the default
-    max_steps, 4096, without and with ``checkpoint=True``), its final error against a reference (the same run
-    at a tolerance 100 times tighter), and diffrax Dopri8 + PID at the tolerances that bracket
-    that error (its default adjoint).
+    max_steps, 4096, without and with ``checkpoint=True``), its final error against a reference
+    (the same run at a tolerance 100 times tighter), and diffrax Dopri8 + PID at the tolerances
+    that bracket that error (its default adjoint).
 long: the gradient's memory at max_steps = 10^6 for FPUT N = 64 (128 unknowns), from the
     compiled program, and the time and memory of one gradient through ~10^5 steps.
 kept: the peers part's gradient / forward ratios at the default max_steps against the number of
@@ -154,7 +154,8 @@ def peers_part():
                     forward_s=timed(lambda q0: run(q0, tol).q[-1], q0, repeat=20)[1],
                     gradient_s=timed(jax.grad(loss), q0, repeat=20)[1],
                     # the default max_steps (4096), and the fewest roots kept (``checkpoint=True``)
-                    gradient_default_max_steps_s=timed(jax.grad(lambda q0: loss(q0, max_steps=4096)), q0, repeat=20)[1],
+                    gradient_default_max_steps_s=timed(jax.grad(lambda q0: loss(q0, max_steps=4096)), q0,
+                                                       repeat=20)[1],
                     gradient_checkpoint_s=timed(jax.grad(lambda q0: loss(q0, max_steps=4096, checkpoint=True)), q0,
                                                 repeat=20)[1])
         for key in ("gradient", "gradient_default_max_steps", "gradient_checkpoint"):
@@ -178,8 +179,9 @@ def peers_part():
                               gradient_ratio_to_dopri8=ours["gradient_s"] / best["gradient_s"])
         print(f"{label}: ours {ours['steps']} steps, error {ours['final_error']:.1e}, forward "
               f"{1e3 * ours['forward_s']:.2f} ms, gradient {1e3 * ours['gradient_s']:.2f} ms "
-              f"({ours['gradient_over_forward']:.2f}x; at max_steps 4096 {ours['gradient_default_max_steps_over_forward']:.2f}x,"
-              f" with checkpoint=True {ours['gradient_checkpoint_over_forward']:.2f}x); Dopri8 at tol {best['tol']:g} (error "
+              f"({ours['gradient_over_forward']:.2f}x; at max_steps 4096 "
+              f"{ours['gradient_default_max_steps_over_forward']:.2f}x, with checkpoint=True "
+              f"{ours['gradient_checkpoint_over_forward']:.2f}x); Dopri8 at tol {best['tol']:g} (error "
               f"{best['final_error']:.1e}) gradient {1e3 * best['gradient_s']:.2f} ms: ratio "
               f"{results[label]['gradient_ratio_to_dopri8']:.2f}", flush=True)
     return results
@@ -307,8 +309,8 @@ def kept_part():
             code = _KEPT.format(here=str(pathlib.Path(__file__).parent), kept=kept, problem=problem)
             done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
             results[problem][kept] = json.loads(done.stdout.strip().splitlines()[-1])
-            print(f"{problem:10s} kept {kept:5d}: gradient / forward {results[problem][kept]['gradient_over_forward']:.2f}",
-                  flush=True)
+            ratio = results[problem][kept]["gradient_over_forward"]
+            print(f"{problem:10s} kept {kept:5d}: gradient / forward {ratio:.2f}", flush=True)
     return results
 
 

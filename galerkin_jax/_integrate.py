@@ -221,8 +221,8 @@ def integrate(
         checkpoint: rematerialise each saved block in reverse mode: a gradient then stores
             one state per save instead of every element's residuals. A run whose steps are
             chosen as it runs (a controller, ``save_at``, events) keeps, for a gradient, the
-            roots of up to 2 MiB of elements, solving only the elements before those again;
-            ``checkpoint`` keeps sqrt(max_steps) of them (docs/derivatives.md). Static.
+            roots of its last 512 elements (at most 16 MiB) and solves the elements before them
+            again; ``checkpoint`` keeps sqrt(max_steps) of them (docs/derivatives.md). Static.
         dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps), or
             O(max_steps) for a controller's run. Static.
         progress: show a progress bar (tqdm if installed, else lines on stderr), ticked from
