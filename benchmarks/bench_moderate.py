@@ -17,8 +17,9 @@ The solvers: galerkin_jax cG(k) + Gauss k (k = 3, 4, 6) at fixed steps, cG(4), c
 PIDController (rtol = atol), and cG(3), cG(4) at fixed steps iterating to 1e-10 of the unknowns
 instead of their round-off (``SolverOptions(tolerance=1e-10)``); diffrax Tsit5 and Dopri8,
 fixed steps and PID (rtol = atol); velocity Verlet and Yoshida's fourth-order triple jump of it
-(separable systems), the implicit midpoint rule (fixed-point iteration to round-off) and its triple jump (the chain, where no
-explicit symplectic splitting applies), written here in plain JAX (``lax.fori_loop``). No
+(separable systems), the implicit midpoint rule (fixed-point iteration to round-off) and its
+triple jump (the chain, where no explicit symplectic splitting applies), written here in plain
+JAX (``lax.fori_loop``). No
 TimeTransform: the softened Plummer sphere has no close encounters to follow, and with its
 default s (second derivatives of H in the solve) a first try compiled in 58 s and took 16 s
 for 15 steps at h_tau = 1 (error 5e-2).
