@@ -1,6 +1,6 @@
 """Gradients through runs whose steps a controller chooses: paid for by the steps taken.
 
-    python benchmarks/bench_gradients.py [--only max_steps peers long fixed kept] [--name gradients]
+    python benchmarks/bench_gradients.py [--only max_steps peers long fixed kept products] [--name gradients]
     python benchmarks/bench_gradients.py --only fixed --baseline 5bbacdc --name gradients_fixed
 
 max_steps: the beta-FPUT chain of 6 masses (12 unknowns; ``scenes.fput``), cG(4) + Gauss 4,
@@ -16,6 +16,8 @@ peers: Kepler e = 0.9 over one orbit (cG(6) + Gauss 7) and FPUT N = 64 (cG(4) + 
     that bracket that error (its default adjoint).
 long: the gradient's memory at max_steps = 10^6 for FPUT N = 64 (128 unknowns), from the
     compiled program, and the time and memory of one gradient through ~10^5 steps.
+products: inside one backward element of the peers part's FPUT run: a residual, a forward-mode
+    and a transposed product with its Jacobian, the element's vector-Jacobian product.
 kept: the peers part's gradient / forward ratios at the default max_steps against the number of
     elements whose roots a gradient keeps (``_adjoint.KEPT_ELEMENTS``), each in a fresh process.
 fixed: gradients through fixed steps (d/dq0 of |q_N|^2 + |p_N|^2): Kepler e = 0.5 over one orbit,
@@ -314,7 +316,79 @@ def kept_part():
     return results
 
 
-PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "fixed": fixed_part, "kept": kept_part}
+def products_part(calls=200):
+    """The costs inside one backward element of the peers part's FPUT N = 64 run (cG(4) + Gauss 4,
+    an element of h = 0.035 from its start, 512 unknowns, the Gauss-Seidel sweep residual), each
+    in ``calls`` chained calls in one compiled program: a residual, a forward-mode product (JVP)
+    with its Jacobian, a product with its transpose (linearised once, the products alone), and
+    the whole element taken backwards (``jax.vjp`` of the element map through the implicit
+    solve, in the start state)."""
+    from galerkin_jax import _adjoint, _march
+
+    _, H, q0, p0, _, method, _ = fput_large()
+    h, args = jnp.asarray(0.035), None
+    options = _march.solver_options(method)
+    fn = _march.element_residual(H, options.solver.sweep_dimension)
+    params = (method, q0, p0, h, args)
+    Z = _march.solve_element(method, H, q0, p0, h, args, options)[2]
+    z = jnp.concatenate([q0, p0])
+    spec = _adjoint.Spec(H=H, transform=None, options=options, max_steps=4096)
+
+    def cost(step, x):
+        loop = lambda x: jax.lax.fori_loop(0, calls, lambda _, x: x + 1e-30 * step(x).reshape(x.shape), x)
+        _, call = compiled(loop, x)
+        jax.block_until_ready(call(x))
+        return 1e6 * best_time(call, x, repeat=20) / calls
+
+    _, linear = jax.linearize(lambda Z: fn(Z, params), Z)
+    transposed = jax.linear_transpose(linear, Z)
+
+    def five_transposed(v):  # linearised once, as _tangent's Richardson iteration does
+        _, linear = jax.linearize(lambda Z: fn(Z, params), Z)
+        transposed = jax.linear_transpose(linear, Z)
+        for _ in range(5):
+            v = transposed(v)[0]
+        return v
+
+    def backward(lam):
+        element = lambda z: _adjoint._element(spec, H, jax.lax.stop_gradient((method, args)), z, h, Z)[0]
+        return jax.vjp(element, z)[1](lam)[0]
+
+    # the products Richardson's iteration takes per element in the peers part's gradient, counted
+    # by a host callback in each product (``_tangent._iterated`` wrapped for this count alone)
+    from galerkin_jax import _tangent
+
+    count = dict(products=0, solves=0)
+    iterated = _tangent._iterated
+
+    def counting(matvec, b):
+        def counted(x):
+            jax.debug.callback(lambda: count.__setitem__("products", count["products"] + 1))
+            return matvec(x)
+
+        jax.debug.callback(lambda: count.__setitem__("solves", count["solves"] + 1))
+        return iterated(counted, b)
+
+    _tangent._iterated = counting
+    jax.clear_caches()  # a gradient compiled before in this process would not count
+    try:
+        run = lambda q0: gj.integrate(H, q0, p0, method=method, h=0.01, t1=10.0,
+                                      controller=gj.PIDController(1e-8, 1e-8))
+        jax.block_until_ready(jax.jit(jax.grad(lambda q0: jnp.sum(run(q0).q[-1] ** 2)))(q0))
+    finally:
+        _tangent._iterated = iterated
+        jax.clear_caches()
+    out = dict(products_per_element=count["products"] / count["solves"], residual_us=cost(lambda Z: fn(Z, params), Z),
+               jvp_product_us=cost(lambda v: jax.jvp(lambda Z: fn(Z, params), (Z,), (v,))[1], Z),
+               transposed_product_us=cost(lambda v: transposed(v)[0], Z),
+               five_transposed_products_us=cost(five_transposed, Z),
+               backward_element_us=cost(backward, z))
+    print(", ".join(f"{key} {value:.2f}" for key, value in out.items()), flush=True)
+    return out
+
+
+PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "fixed": fixed_part, "kept": kept_part,
+         "products": products_part}
 
 
 def main():
