@@ -9,6 +9,7 @@ cG(k)'s exact energy conservation into a drift of a few eps per step.
 
 import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from numpy.polynomial import legendre as npleg
@@ -18,12 +19,15 @@ def combine(A, X):
     """``A @ X`` for a small coefficient array A (shape ``(m,)`` or ``(l, m)``) and X of shape
     ``(m, ...)``, unrolled over m as ``sum_j A[..., j] X[j]``: elementwise products that XLA
     fuses with their neighbours, alone and under vmap, where a matrix product of this size is
-    a kernel launch of its own and a broadcast-and-reduce is slow once batched."""
+    a kernel launch of its own and a broadcast-and-reduce is slow once batched. The rows X[j]
+    come from one ``lax.split``, whose transpose (reverse mode) is one concatenate, where m
+    indexed rows transpose into m padded arrays added up, a kernel each."""
     A = jnp.asarray(A, X.dtype)
     a_shape, x_shape = A.shape[:-1] + (1,) * (X.ndim - 1), (1,) * (A.ndim - 1) + X.shape[1:]
-    total = A[..., 0].reshape(a_shape) * X[0].reshape(x_shape)
+    rows = jax.lax.split(X, (1,) * X.shape[0])
+    total = A[..., 0].reshape(a_shape) * rows[0].reshape(x_shape)
     for j in range(1, A.shape[-1]):
-        total = total + A[..., j].reshape(a_shape) * X[j].reshape(x_shape)
+        total = total + A[..., j].reshape(a_shape) * rows[j].reshape(x_shape)
     return total
 
 
