@@ -559,8 +559,9 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
     ts_bar = None if inputs["ts"] is None else jnp.zeros_like(inputs["ts"])
     guess = inputs["method"].initial_guess(*jnp.split(z0, 2))
 
-    def again(k, kept, ok):
-        """Stretch k's elements found again, forwards from its checkpoint, their roots in ``kept``."""
+    def again(k, kept, ok, count):
+        """Stretch k's first ``count`` elements found again, forwards from its checkpoint, their
+        roots in ``kept``."""
         first = k * every
         start = jax.tree.map(lambda a: a[k], c["checkpoints"])
 
@@ -576,7 +577,7 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
 
         previous = (z0, guess, jnp.ones((), dtype), jnp.zeros((), bool))
         r = (start["z"], start["t"], start["acc"], initial_matrix(guess, options), previous, ok, kept)
-        *_, ok, kept = jax.lax.fori_loop(0, jnp.minimum(steps, first + every) - first, found, r)
+        *_, ok, kept = jax.lax.fori_loop(0, count, found, r)
         return kept, ok
 
     def backwards(k, kept, s):
@@ -630,15 +631,17 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
 
         return jax.lax.fori_loop(0, length, back, s)
 
-    def segment(s):  # an earlier stretch
+    # the last stretch from the forward run's roots, then each earlier one found again over them
+    # (one loop: the backward element compiles once)
+    last = (steps + every - 1) // every - 1
+
+    def segment(s):
         k, kept, ok, *bars = s
-        kept, ok = again(k, kept, ok)
+        length = jnp.minimum(steps, (k + 1) * every) - k * every
+        kept, ok = again(k, kept, ok, jnp.where(k == last, 0, length))
         return k - 1, kept, ok, *backwards(k, kept, tuple(bars))
 
-    # the last stretch from the forward run's roots, then the earlier ones, the roots written over
-    last = (steps + every - 1) // every - 1
-    bars = backwards(jnp.maximum(last, 0), c["kept"], (lam, acc_bar, zeros(theta), times_bar, ts_bar))
-    s = (last - 1, c["kept"], c["status"] == Status.SUCCESS, *bars)
+    s = (last, c["kept"], c["status"] == Status.SUCCESS, lam, acc_bar, zeros(theta), times_bar, ts_bar)
     _, _, ok, lam, acc_bar, (method_bar, run_args_bar), times_bar, ts_bar = jax.lax.while_loop(
         lambda s: s[0] >= 0, segment, s)
     t0_bar, t1_bar, h_bar = times_bar
