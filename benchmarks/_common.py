@@ -75,6 +75,15 @@ def best_time(call, *args, repeat=3, min_s=0.1, budget_s=3.0):
     return min(times)
 
 
+def chained_us(step, carry, calls=200, repeat=5):
+    """Microseconds per call of ``step`` (carry -> carry of the same shapes), from ``calls``
+    chained calls in one compiled loop (one program's launch spread over them), warmed up, the
+    best of ``repeat`` (``best_time``)."""
+    _, call = compiled(lambda c: jax.lax.fori_loop(0, calls, lambda _, c: step(c), c), carry)
+    jax.block_until_ready(call(carry))
+    return 1e6 * best_time(call, carry, repeat=repeat) / calls
+
+
 @contextlib.contextmanager
 def figure(path, ncols=1, size=(6, 4.5)):
     """``with figure(path) as axes``: a headless Matplotlib figure of ``ncols`` Axes side by

@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from _common import best_time, compiled, timed, write  # noqa: E402
+from _common import best_time, chained_us, compiled, timed, write  # noqa: E402
 
 import galerkin_jax as gj  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
@@ -335,10 +335,7 @@ def products_part(calls=200):
     spec = _adjoint.Spec(H=H, transform=None, options=options, max_steps=4096)
 
     def cost(step, x):
-        loop = lambda x: jax.lax.fori_loop(0, calls, lambda _, x: x + 1e-30 * step(x).reshape(x.shape), x)
-        _, call = compiled(loop, x)
-        jax.block_until_ready(call(x))
-        return 1e6 * best_time(call, x, repeat=20) / calls
+        return chained_us(lambda x: x + 1e-30 * step(x).reshape(x.shape), x, calls, repeat=20)
 
     _, linear = jax.linearize(lambda Z: fn(Z, params), Z)
     transposed = jax.linear_transpose(linear, Z)

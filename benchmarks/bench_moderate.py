@@ -67,7 +67,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 import _moderate as systems  # noqa: E402
 import _peers as peers  # noqa: E402
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, best_time, compiled, machine, write  # noqa: E402
+from _common import RESULTS, best_time, chained_us, compiled, machine, write  # noqa: E402
 
 SAVES = 10  # the energy is measured at t = j T / SAVES, j = 0..SAVES
 LEVELS = (1e-6, 1e-8, 1e-10)
@@ -736,9 +736,7 @@ def gradient_costs(system, points=(3, 4, 6), calls=200):
     grad_both, grad_q = jax.grad(system.H, argnums=(0, 1)), jax.grad(system.H, argnums=0)
 
     def cost(step, q, p, states=1):
-        loop = lambda q, p: jax.lax.fori_loop(0, calls, lambda _, c: step(*c), (q, p))
-        _, call = compiled(loop, q, p)
-        return 1e6 * best_time(call, q, p, repeat=5) / calls / states
+        return chained_us(lambda c: step(*c), (q, p), calls) / states
 
     def both(q, p):
         dq, dp = grad_both(q, p)
@@ -790,11 +788,7 @@ def element_split(system, k=3, calls=200):
             return jax.vmap(jax.grad(system.H, argnums=0), in_axes=(0, None))(X, p0)
         return jnp.concatenate(jax.vmap(jax.grad(system.H, argnums=(0, 1)), in_axes=(0, None))(X, p0), axis=1)
 
-    def cost(f, x):
-        loop = lambda x: jax.lax.fori_loop(0, calls, lambda _, x: x + 1e-30 * jnp.mean(f(x)), x)
-        _, call = compiled(loop, x)
-        return 1e6 * best_time(call, x, repeat=5) / calls
-
+    cost = lambda f, x: chained_us(lambda x: x + 1e-30 * jnp.mean(f(x)), x, calls)
     residual_us = cost(lambda Z: fn(Z, (method, q0, p0, h, None)), Z)
     field_us = cost(field, Z)
     row = dict(k=k, steps=[SPLIT_STEPS[system.name], 4 * SPLIT_STEPS[system.name]],

@@ -77,8 +77,8 @@ class Spec:
     checkpoint: bool = False
 
     def stretch(self, root):
-        """The elements between checkpoints, whose roots (``root``: the shapes of one element's
-        z, t, Z and acc) a gradient keeps: ``KEPT_ELEMENTS``, or as many as ``KEPT_BYTES`` hold,
+        """The elements between checkpoints, whose roots (``root``: one element's z, t, Z and
+        acc, of which the sizes count) a gradient keeps: ``KEPT_ELEMENTS``, or as many as ``KEPT_BYTES`` hold,
         at most ``max_steps``, and at least sqrt(max_steps) (then the checkpoints and one
         stretch each take about sqrt(max_steps) elements of memory), which is all with
         ``checkpoint``."""
@@ -103,13 +103,13 @@ def run(spec, inputs):
 
     @jax.custom_jvp
     def outputs(inputs):
-        return _forward(spec, inputs, every=None)
+        return _forward(spec, inputs, keep=False)
 
     def outputs_jvp(primals, tangents):
         (inputs,), (d_inputs,) = primals, tangents
         leaves, full, pick, wanted = _tangents(spec, inputs, d_inputs)
         inputs = _first_order(inputs)
-        c = _forward(spec, inputs, every=_stretch(spec, inputs))
+        c = _forward(spec, inputs, keep=True)
         out = {k: v for k, v in c.items() if k not in ("checkpoints", "kept")}
         differentiable = {k: out[k] for k in DIFFERENTIABLE if out.get(k) is not None}
         if not leaves:  # no input with a derivative moves
@@ -233,16 +233,6 @@ def _start(spec, q0, p0, args, t0):
     return jnp.concatenate([z_q0, z_p0]), run_args
 
 
-def _stretch(spec, inputs):
-    """``spec.stretch`` for the elements of this run (their shapes)."""
-    def root():
-        z0, _ = _start(spec, inputs["q0"], inputs["p0"], inputs["args"], inputs["t0"])
-        acc = None if spec.observe is None else spec.acc0(inputs["q0"], inputs["p0"], inputs["args"])
-        return dict(z=z0, Z=inputs["method"].initial_guess(*jnp.split(z0, 2)), t=z0[0], acc=acc)
-
-    return spec.stretch(jax.eval_shape(root))
-
-
 def _problem(spec, inputs):
     """``(H~, s~, clock)`` of the problem the loop solves."""
     fn, _, _, _, s, clock = _adaptive.problem(spec.H, spec.transform, inputs["q0"], inputs["p0"], inputs["t0"],
@@ -250,10 +240,14 @@ def _problem(spec, inputs):
     return fn, s, clock
 
 
-def _forward(spec, inputs, every):
+def _forward(spec, inputs, keep):
+    """The forward run; ``keep``: with the checkpoints and the kept roots a gradient reads."""
     fn, s, clock = _problem(spec, inputs)
     z0, run_args = _start(spec, inputs["q0"], inputs["p0"], inputs["args"], inputs["t0"])
     acc0 = None if spec.observe is None else spec.acc0(inputs["q0"], inputs["p0"], inputs["args"])
+    every = None
+    if keep:  # an element's root: its start z and t, its unknowns Z and the diagnostics there
+        every = spec.stretch(dict(z=z0, Z=inputs["method"].initial_guess(*jnp.split(z0, 2)), t=z0[0], acc=acc0))
     controller = inputs["controller"] if spec.transform is None else spec.transform
     c = _adaptive.run(inputs["method"], fn, *jnp.split(z0, 2), inputs["t0"], inputs["t1"], inputs["h"], run_args,
                       controller, options=spec.options, max_steps=spec.max_steps, ts=inputs["ts"], dense=spec.dense,
@@ -559,10 +553,9 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
     ts_bar = None if inputs["ts"] is None else jnp.zeros_like(inputs["ts"])
     guess = inputs["method"].initial_guess(*jnp.split(z0, 2))
 
-    def again(k, kept, ok, count):
-        """Stretch k's first ``count`` elements found again, forwards from its checkpoint, their
-        roots in ``kept``."""
-        first = k * every
+    def again(k, first, count, kept, ok):
+        """Stretch k's (from element ``first``) first ``count`` elements found again, forwards
+        from its checkpoint, their roots in ``kept``."""
         start = jax.tree.map(lambda a: a[k], c["checkpoints"])
 
         def found(i, r):
@@ -580,10 +573,8 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
         *_, ok, kept = jax.lax.fori_loop(0, count, found, r)
         return kept, ok
 
-    def backwards(k, kept, s):
-        """Stretch k's elements taken backwards, from their roots in ``kept``."""
-        first = k * every
-        length = jnp.minimum(steps, first + every) - first
+    def backwards(first, length, kept, s):
+        """The ``length`` elements from ``first`` taken backwards, from their roots in ``kept``."""
 
         def back(j, s):
             lam, acc_bar, theta_bar, times_bar, ts_bar = s
@@ -637,9 +628,10 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
 
     def segment(s):
         k, kept, ok, *bars = s
-        length = jnp.minimum(steps, (k + 1) * every) - k * every
-        kept, ok = again(k, kept, ok, jnp.where(k == last, 0, length))
-        return k - 1, kept, ok, *backwards(k, kept, tuple(bars))
+        first = k * every
+        length = jnp.minimum(steps, first + every) - first
+        kept, ok = again(k, first, jnp.where(k == last, 0, length), kept, ok)
+        return k - 1, kept, ok, *backwards(first, length, kept, tuple(bars))
 
     s = (last, c["kept"], c["status"] == Status.SUCCESS, lam, acc_bar, zeros(theta), times_bar, ts_bar)
     _, _, ok, lam, acc_bar, (method_bar, run_args_bar), times_bar, ts_bar = jax.lax.while_loop(
