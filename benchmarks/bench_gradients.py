@@ -1,6 +1,6 @@
 """Gradients through runs whose steps a controller chooses: paid for by the steps taken.
 
-    python benchmarks/bench_gradients.py [--only max_steps peers long fixed kept products] [--name gradients]
+    python benchmarks/bench_gradients.py [--only max_steps peers long fixed kept products members] [--name gradients]
     python benchmarks/bench_gradients.py --only fixed --baseline 5bbacdc --name gradients_fixed
 
 max_steps: the beta-FPUT chain of 6 masses (12 unknowns; ``scenes.fput``), cG(4) + Gauss 4,
@@ -20,6 +20,11 @@ products: inside one backward element of the peers part's FPUT run: a residual, 
     and a transposed product with its Jacobian, the element's vector-Jacobian product.
 kept: the peers part's gradient / forward ratios at the default max_steps against the number of
     elements whose roots a gradient keeps (``_adjoint.KEPT_ELEMENTS``), each in a fresh process.
+members: a controller's sweep over 8 tolerances (1e-4 to 1e-11, each member its own steps) of Kepler
+    e = 0.9 (the peers part's) and of the FPUT chain of 6 masses (the max_steps part's, PID, h0 =
+    0.05): d/dq0 of the sum of |q(T)|^2, all members at once (``vmap``) and with ``batch_size`` 1
+    and 4 (chunks one after another), beside the sum of the members' gradients alone
+    (``integrate``); compile and run times apart.
 fixed: gradients through fixed steps (d/dq0 of |q_N|^2 + |p_N|^2): Kepler e = 0.5 over one orbit,
     cG(6) + Gauss 6, 126 steps; the same with cG(2) + Gauss 3, h = 0.01, 2000 steps,
     ``checkpoint=True``; FPUT N = 64, cG(4) + Gauss 4, h = 0.035, 286 steps. Compile and run
@@ -384,8 +389,42 @@ def products_part(calls=200):
     return out
 
 
+def members_part(tolerances=tuple(10.0 ** -np.arange(4, 12))):
+    results = {}
+    fput = scenes.fput(6)
+    problems = (kepler()[1:], (fput.H, jnp.asarray(fput.q0), jnp.asarray(fput.p0), 10.0,
+                                gj.CG(4, gj.gauss_legendre(4)), None))
+    for label, (H, q0, p0, T, method, _) in zip(("kepler", "fput_6"), problems):
+        B, tols = len(tolerances), jnp.asarray(tolerances)
+        configs = lambda q0s: gj.Configs(method=gj.stack_methods([method] * B), h=jnp.full(B, 0.05), q0=q0s,
+                                         p0=jnp.stack([p0] * B))
+        q0s = jnp.stack([q0] * B)
+
+        def loss(q0s, batch_size):
+            result = gj.sweep(H, configs(q0s), t1=T, controller=gj.PIDController(tols, tols), batch_size=batch_size)
+            return jnp.sum(result.q ** 2)
+
+        steps = gj.sweep(H, configs(q0s), t1=T, controller=gj.PIDController(tols, tols)).num_accepted_steps
+        alone = lambda q0, tol: jnp.sum(gj.integrate(H, q0, p0, method=method, h=0.05, t1=T,
+                                                     controller=gj.PIDController(tol, tol)).q[-1] ** 2)
+        _, grad_alone = compiled(jax.grad(alone), q0, tols[0])
+        jax.block_until_ready(grad_alone(q0, tols[0]))
+        case = dict(steps=[int(n) for n in steps],
+                    alone_gradient_s=[best_time(grad_alone, q0, tol, repeat=5) for tol in tols])
+        case["alone_gradient_sum_s"] = sum(case["alone_gradient_s"])
+        for batch_size in (None, 1, 4):
+            key = "vmap" if batch_size is None else f"batch_size_{batch_size}"
+            forward = timed(lambda x: loss(x, batch_size), q0s)
+            gradient = timed(jax.grad(lambda x: loss(x, batch_size)), q0s)
+            case[key] = dict(forward_compile_s=forward[0], forward_s=forward[1], gradient_compile_s=gradient[0],
+                             gradient_s=gradient[1])
+        print(label, json.dumps(case), flush=True)
+        results[label] = case
+    return results
+
+
 PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "fixed": fixed_part, "kept": kept_part,
-         "products": products_part}
+         "products": products_part, "members": members_part}
 
 
 def main():

@@ -128,8 +128,9 @@ def _result(final, runs, invariants, reference):
     )
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5, 6, 7))
-def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, estimate, configs, reference, t0, t1):
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5, 6, 7, 8))
+def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, estimate, batch_size, configs, reference,
+         t0, t1):
     """Fixed steps: ``n_steps`` elements, or to ``t1`` (each member its own count, at most n_steps)."""
     invariants = dict(invariants)
     block = _block_size(n_steps, save_every, checkpoint)
@@ -150,12 +151,13 @@ def _run(H, invariants, n_steps, save_every, options, checkpoint, progress, esti
         return final, (solution(final, saved, None, q0, p0, h, block, t0, t_end) if save_every else None)
 
     c = configs
-    final, runs = jax.vmap(one)(c.method, c.q0, c.p0, c.h, c.args)
+    final, runs = _members(one, batch_size, c.method, c.q0, c.p0, c.h, c.args)
     return _result(final, runs, invariants, reference)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5))
-def _run_adaptive(H, invariants, max_steps, options, estimate, checkpoint, configs, reference, t0, t1, controller):
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3, 4, 5, 6))
+def _run_adaptive(H, invariants, max_steps, options, estimate, checkpoint, batch_size, configs, reference, t0, t1,
+                  controller):
     """A controller's runs to ``t1``, each member its own steps, with derivatives (``_adjoint``)."""
     invariants = dict(invariants)
     acc0, observe = _diagnostics(H, invariants)
@@ -171,8 +173,29 @@ def _run_adaptive(H, invariants, max_steps, options, estimate, checkpoint, confi
                     **{k: c[k] for k in ("status", "total", "most", "trips", "steps", "attempts", "rejected", "lenient")})
 
     c = configs
-    final = jax.vmap(one)(c.method, c.q0, c.p0, c.h, c.args, None if transform else controller)
+    final = _members(one, batch_size, c.method, c.q0, c.p0, c.h, c.args, None if transform else controller)
     return _result(final, None, invariants, reference)
+
+
+def _members(one, batch_size, *xs):
+    """``one`` over the members (the leading axis of ``xs``): all at once (``vmap``), or in chunks
+    of ``batch_size``, one after another (``lax.map``; chunks of one run unbatched)."""
+    if batch_size is None:
+        return jax.vmap(one)(*xs)
+    return jax.lax.map(lambda x: one(*x), xs, batch_size=None if batch_size == 1 else batch_size)
+
+
+def _check_batch_size(batch_size, devices, progress):
+    if batch_size is None:
+        return
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+        raise ValueError(f"batch_size must be a positive integer or None, got {batch_size!r}.")
+    if devices is not None:
+        raise ValueError("batch_size and devices exclude each other: a sharded sweep runs each device's members "
+                         "at once.")
+    if progress:
+        raise ValueError("batch_size and progress exclude each other: the bar counts the elements of members "
+                         "that advance together.")
 
 
 def _shard(tree, devices):
@@ -207,6 +230,7 @@ def sweep(
     checkpoint=False,
     progress=False,
     error_estimate=True,
+    batch_size=None,
 ) -> SweepResult:
     """Run every configuration of ``configs`` for ``n_steps`` elements, or to ``t1``, in one compiled call.
 
@@ -239,10 +263,16 @@ def sweep(
             element's residuals; with a ``controller``, as in ``integrate``. Static.
         progress: show a progress bar over the elements (all members advance together). Static.
         error_estimate: True, "full" or False, as in ``integrate``. Static.
+        batch_size: run the configurations in chunks of this many, one chunk after another
+            (``jax.lax.map``), instead of all at once (``vmap``, the default). A chunk runs, and
+            is differentiated, for as many steps as its slowest member takes: with a controller,
+            ``batch_size=1`` makes each configuration's run and gradient cost its own steps.
+            Static.
     Returns:
         ``SweepResult`` with a leading axis B on every field.
     """
     _span.check_span(n_steps, t0, t1, controller)
+    _check_batch_size(batch_size, devices, progress)
     if t1 is not None and save_every is not None:
         raise ValueError("save_every needs n_steps: a sweep to t1 saves no trajectory.")
     counts = None
@@ -275,10 +305,10 @@ def sweep(
     span = (jnp.asarray(t0, dtype), None if t1 is None else jnp.asarray(t1, dtype))
     if controller is None:
         result = _run(H, tuple(invariants.items()), n_steps or counts, save_every, options, checkpoint,
-                      bool(progress), estimate, *inputs[:2], *span)
+                      bool(progress), estimate, batch_size, *inputs[:2], *span)
     else:
         result = _run_adaptive(H, tuple(invariants.items()), max_steps or DEFAULT_MAX_STEPS, options, estimate,
-                               checkpoint, inputs[0], inputs[1], *span, inputs[2])
+                               checkpoint, batch_size, inputs[0], inputs[1], *span, inputs[2])
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
     if throw:

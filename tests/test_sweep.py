@@ -103,6 +103,53 @@ def test_gradient_of_a_sweep_diagnostic_equals_central_differences():
         assert float(grad[i]) == pytest.approx(float(fd), rel=1e-6)
 
 
+def test_a_sweep_in_chunks_equals_the_sweep_at_once_and_so_does_its_gradient():
+    """``batch_size`` runs the members in chunks, one chunk after another: a controller's members
+    (15 to 305 steps) take the same steps and reach the same states, and the gradient through
+    them, from each member's own adjoint sweep, is the batched one; fixed steps likewise.
+    Measured: the same states and gradients to the last bit (the unbatched and batched root
+    finders take the same updates here); asserted to round-off, 1e-13 in the states and 1e-12
+    relative in the gradient, since they may stop an update apart. Each member's gradient
+    costing its own steps is measured in ``bench_gradients.py --only members``."""
+    B = 5
+    method = gj.stack_methods([gj.CG(4, gj.gauss_legendre(4))] * B)
+    tols = jnp.array([1e-5, 1e-6, 1e-8, 1e-10, 1e-12])
+    q0s = jnp.stack([Q0 * (1 + 0.01 * i) for i in range(B)])
+
+    def run(q0s, batch_size):
+        configs = gj.Configs(method=method, h=jnp.full(B, 0.05), q0=q0s, p0=jnp.stack([P0] * B))
+        return gj.sweep(H, configs, t1=3.0, controller=gj.PIDController(tols, tols), batch_size=batch_size,
+                        invariants=ANGULAR)
+
+    loss = lambda q0s, batch_size: jnp.sum(run(q0s, batch_size).q ** 2)
+    at_once, at_once_grad = run(q0s, None), jax.grad(loss)(q0s, None)
+    assert np.asarray(at_once.num_accepted_steps).tolist() == [15, 22, 51, 123, 305]
+    for batch_size in (1, 2):
+        chunks = run(q0s, batch_size)
+        np.testing.assert_array_equal(chunks.num_accepted_steps, at_once.num_accepted_steps)
+        np.testing.assert_allclose(chunks.q, at_once.q, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(chunks.invariant_errors["L"], at_once.invariant_errors["L"], rtol=1e-12)
+    grad = jax.grad(loss)(q0s, 1)  # chunks of 2 (and a remainder of 1) differ in the forward run alone
+    assert float(jnp.max(jnp.abs(grad - at_once_grad)) / jnp.max(jnp.abs(at_once_grad))) < 1e-12
+    configs = gj.grid(method=[gj.CG(2, RULES[0])], h=[0.02, 0.05], state=STATES[:2])
+    fixed, fixed_chunks = (gj.sweep(H, configs, n_steps=40, batch_size=b, save_every=10) for b in (None, 3))
+    np.testing.assert_allclose(fixed_chunks.q, fixed.q, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(fixed_chunks.solution.q, fixed.solution.q, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(batch_size=0), "positive integer"),
+    (dict(batch_size=1.5), "positive integer"),
+    (dict(batch_size=True), "positive integer"),
+    (dict(batch_size=2, devices=jax.devices()), "devices"),
+    (dict(batch_size=2, progress=True), "progress"),
+])
+def test_sweep_rejects_a_bad_batch_size(kwargs, match):
+    configs = gj.grid(method=[gj.CG(1, gj.midpoint())], h=[0.1], state=STATES[:2])
+    with pytest.raises(ValueError, match=match):
+        gj.sweep(H, configs, n_steps=10, **kwargs)
+
+
 def test_sweep_rejects_bad_input():
     configs = gj.grid(method=[gj.CG(1, gj.midpoint())], h=[0.1], state=STATES[:1])
     with pytest.raises(TypeError, match="Configs"):
