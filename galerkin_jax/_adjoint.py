@@ -18,6 +18,8 @@ took, whatever ``max_steps``:
   ``KEPT_ELEMENTS``, sqrt(max_steps) with ``checkpoint``); the adjoint takes that last
   stretch backwards from the kept roots, then each earlier stretch after solving it again
   from its checkpoint into the same buffer. A run of at most ``every`` elements is solved once.
+  Under ``vmap`` on a CPU it takes the members one after another, each for its own elements
+  (``_apart``).
 
 ``linear_map`` makes the forward sweep an operation that JAX transposes into the reverse one.
 The times: a constant h's element n starts at t0 + n h; a controller's at t0 plus the steps
@@ -114,13 +116,50 @@ def run(spec, inputs):
         differentiable = {k: out[k] for k in DIFFERENTIABLE if out.get(k) is not None}
         if not leaves:  # no input with a derivative moves
             return out, jax.tree.map(_zero_tangent, out)
+        adjoint = _apart(lambda inputs, c, ct: _adjoint_sweep(spec, inputs, c, ct, wanted))
         d_out = linear_map(lambda leaves: _tangent_sweep(spec, inputs, c, full(leaves), wanted),
-                           lambda ct: pick(_adjoint_sweep(spec, inputs, c, ct, wanted)), leaves, differentiable)
+                           lambda ct: pick(adjoint(inputs, c, ct)), leaves, differentiable)
         zero = {k: jax.tree.map(_zero_tangent, v) for k, v in out.items() if k not in d_out}
         return out, {**zero, **d_out}
 
     outputs.defjvp(outputs_jvp, symbolic_zeros=True)
     return outputs(inputs)
+
+
+def _apart(sweep):
+    """``sweep(*args)``, whose members under ``vmap`` on a CPU run one after another
+    (``lax.map``), each for its own elements, instead of all at once for the longest member's.
+    There a batched element costs about its members' elements alone (their tangents are
+    factorised and multiplied member by member), so a batch would only add the wait; an
+    accelerator, where it costs about one member's, keeps the batch."""
+    if jax.default_backend() != "cpu":
+        return sweep
+
+    def call(*args):
+        # the sweep's constants (the residuals of a vmapped vjp may batch them) as arguments too:
+        # a rule may map every operand
+        traced = jax.make_jaxpr(sweep, return_shape=True)
+        closed, shape = traced(*args)
+        structure = jax.tree.structure(shape)
+        run = lambda consts, *args: jax.tree.unflatten(structure, jax.core.eval_jaxpr(
+            closed.jaxpr, consts, *jax.tree.leaves(args)))
+        apart = jax.custom_batching.custom_vmap(run)
+
+        @apart.def_vmap
+        def _(axis_size, in_batched, *args):
+            leaves, tree = jax.tree.flatten(args)
+            batched = jax.tree.leaves(in_batched)
+
+            def member(mapped):
+                mapped = iter(mapped)
+                return run(*jax.tree.unflatten(tree, [next(mapped) if b else x for x, b in zip(leaves, batched)]))
+
+            out = jax.lax.map(member, [x for x, b in zip(leaves, batched) if b])
+            return out, jax.tree.map(lambda _: True, out)
+
+        return apart(list(closed.consts), *args)
+
+    return call
 
 
 def linear_map(forward, transpose, x, y):

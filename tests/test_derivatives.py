@@ -185,3 +185,37 @@ def test_a_sweeps_gradient_from_the_kept_roots_equals_one_from_roots_found_again
     kept, again = (jax.jacrev(lambda x: run(x, checkpoint))(X0) for checkpoint in (False, True))
     assert np.all(np.isfinite(kept)) and float(jnp.max(jnp.abs(kept))) > 1.0
     assert float(jnp.max(jnp.abs(again - kept)) / jnp.max(jnp.abs(kept))) < 1e-12
+
+
+def test_a_vmapped_gradient_takes_each_members_own_elements_backwards(monkeypatch):
+    """Under ``vmap`` on a CPU the adjoint sweep runs the members one after another
+    (``_adjoint._apart``): the backward elements taken, counted by a callback, are the members'
+    own accepted steps summed (58 + 314), not the batch's longest member's twice (628). The gradients
+    equal each member's own, and so do those of a vmapped ``jax.vjp``, whose residuals (the
+    sweep's constants among them) come batched. Measured: equal to the last bit; asserted to
+    1e-12 relative (the batched and lone forward runs may stop an update apart)."""
+    from galerkin_jax import _adjoint
+
+    count = dict(elements=0)
+    element = _adjoint._element
+
+    def counted(*args):
+        jax.debug.callback(lambda: count.__setitem__("elements", count["elements"] + 1))
+        return element(*args)
+
+    monkeypatch.setattr(_adjoint, "_element", counted)
+    jax.clear_caches()  # a program compiled before the patch would not count
+    tols = jnp.array([1e-6, 1e-9])
+    run = lambda q0, tol: gj.integrate(H, q0, P0, method=gj.CG(3, gj.gauss_legendre(3)), h=0.1, t1=T1,
+                                       args=dict(gm=1.0, j2=1e-3), controller=gj.PIDController(tol, tol))
+    loss = lambda q0, tol: jnp.sum(run(q0, tol).q[-1] ** 2)
+    steps = [int(run(Q0, tol).stats["num_accepted_steps"]) for tol in tols]
+    assert steps == [58, 314]
+    batched = jax.jit(jax.vmap(jax.grad(loss), in_axes=(None, 0)))(Q0, tols)
+    assert count["elements"] == sum(steps)
+    monkeypatch.undo()
+    jax.clear_caches()  # nor leave counting programs behind
+    alone = jnp.stack([jax.grad(loss)(Q0, tol) for tol in tols])
+    np.testing.assert_allclose(batched, alone, rtol=1e-12, atol=0)
+    _, vjps = jax.vmap(lambda tol: jax.vjp(lambda q0: loss(q0, tol), Q0))(tols)
+    np.testing.assert_allclose(jax.vmap(lambda f: f(jnp.ones(()))[0])(vjps), alone, rtol=1e-12, atol=0)
