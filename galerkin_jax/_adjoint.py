@@ -141,9 +141,9 @@ def _apart(sweep):
         traced = jax.make_jaxpr(sweep, return_shape=True)
         closed, shape = traced(*args)
         structure = jax.tree.structure(shape)
-        run = lambda consts, *args: jax.tree.unflatten(structure, jax.core.eval_jaxpr(
+        evaluate = lambda consts, *args: jax.tree.unflatten(structure, jax.core.eval_jaxpr(
             closed.jaxpr, consts, *jax.tree.leaves(args)))
-        apart = jax.custom_batching.custom_vmap(run)
+        apart = jax.custom_batching.custom_vmap(evaluate)
 
         @apart.def_vmap
         def _(axis_size, in_batched, *args):
@@ -152,7 +152,7 @@ def _apart(sweep):
 
             def member(mapped):
                 mapped = iter(mapped)
-                return run(*jax.tree.unflatten(tree, [next(mapped) if b else x for x, b in zip(leaves, batched)]))
+                return evaluate(*jax.tree.unflatten(tree, [next(mapped) if b else x for x, b in zip(leaves, batched)]))
 
             out = jax.lax.map(member, [x for x, b in zip(leaves, batched) if b])
             return out, jax.tree.map(lambda _: True, out)

@@ -264,10 +264,10 @@ def sweep(
         progress: show a progress bar over the elements (all members advance together). Static.
         error_estimate: True, "full" or False, as in ``integrate``. Static.
         batch_size: run the configurations in chunks of this many, one chunk after another
-            (``jax.lax.map``), instead of all at once (``vmap``, the default). A chunk runs, and
-            is differentiated, for as many steps as its slowest member takes: with a controller,
-            ``batch_size=1`` makes each configuration's run and gradient cost its own steps.
-            Static.
+            (``jax.lax.map``), instead of all at once (``vmap``, the default). A chunk's run takes
+            as many elements as its longest member (its gradient's adjoint sweep, on a CPU, each
+            member's own): with a controller, ``batch_size=1`` makes each configuration's run
+            and gradient cost its own steps. Static.
     Returns:
         ``SweepResult`` with a leading axis B on every field.
     """
@@ -305,10 +305,10 @@ def sweep(
     span = (jnp.asarray(t0, dtype), None if t1 is None else jnp.asarray(t1, dtype))
     if controller is None:
         result = _run(H, tuple(invariants.items()), n_steps or counts, save_every, options, checkpoint,
-                      bool(progress), estimate, batch_size, *inputs[:2], *span)
+                      bool(progress), estimate, batch_size and int(batch_size), *inputs[:2], *span)
     else:
         result = _run_adaptive(H, tuple(invariants.items()), max_steps or DEFAULT_MAX_STEPS, options, estimate,
-                               checkpoint, batch_size, inputs[0], inputs[1], *span, inputs[2])
+                               checkpoint, batch_size and int(batch_size), inputs[0], inputs[1], *span, inputs[2])
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
     if throw:
