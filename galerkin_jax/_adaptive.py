@@ -14,8 +14,9 @@ Three step rules share it:
 * a constant h (``save_at`` or ``events`` on a run of fixed steps): every attempt is accepted,
   the last one shortened to land on t1.
 
-Under ``vmap`` every member takes its own steps and finished members idle (their carry is
-masked); the root finder folds the batch into one iteration as in ``march``. The loop is
+Under ``vmap`` every member takes its own steps and finished members idle: the body leaves
+their outputs as they are, and the loop goes on while any member does (``_any_member``); the
+root finder folds the batch into one iteration as in ``march``. The loop is
 forward-differentiable (``jax.jvp``); the step sizes are constants of the trajectory.
 """
 
@@ -32,6 +33,19 @@ from ._march import (bind_args, compensated_add, continued, element_residual, in
 from ._solve import Status, initial_matrix, solve
 
 _LANDING = 8  # shortened attempts of a time-transformed run's last element (Newton converges in 2-3)
+
+
+@jax.custom_batching.custom_vmap
+def _any_member(going):
+    """``going``; under ``vmap``, whether any member is: the loop's condition stays unbatched, so
+    that JAX does not select every carried buffer between a finished member's old and new values
+    at every attempt (the body leaves a finished member's outputs as they are itself)."""
+    return going
+
+
+@_any_member.def_vmap
+def _(axis_size, in_batched, going):
+    return (jnp.any(going) if in_batched[0] else going), False
 
 
 def problem(H, controller, q0, p0, t0, args):
@@ -387,7 +401,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         )
         return new
 
-    c = jax.lax.while_loop(lambda c: ~c["done"], body, c)
+    c = jax.lax.while_loop(lambda c: _any_member(~c["done"]), body, c)
     if estimate is True:
         c["estimate"] = peak_estimate(method, H_bound, c["peak"])
     return c
