@@ -196,3 +196,33 @@ def test_a_time_transformed_runs_save_times_keep_its_energy():
     n = int(nodes.stats["num_accepted_steps"])
     energy = lambda sol, rows: np.max(np.abs(np.asarray(jax.vmap(He)(sol.q[rows], sol.p[rows])) - float(He(q0, p0))))
     assert int(saved.status) == 0 and energy(saved, slice(None)) < 10 * energy(nodes, slice(0, n + 1))
+
+
+@pytest.mark.parametrize("terminal", [False, True])
+def test_a_member_that_finishes_first_keeps_every_output_of_its_single_run(terminal):
+    """Under ``vmap`` the loop goes on while any member does, and a finished member's body leaves
+    its outputs as they are (``_adaptive._any_member``: no select of the carried buffers guards
+    them). Two members, PID 1e-5 and 1e-10 over one orbit of Kepler e = 0.9, with save times, a
+    crossing event and dense output (the terminal variant: the loose member ends at its first
+    crossing, long before the other): every output of each member, its save times, events,
+    nodes, evaluations, counts, status and estimate, equals its single run. Measured: equal to
+    the last bit; asserted to 1e-13 (the batched root finder may stop an update apart)."""
+    event = gj.Event(lambda t, q, p: q[1] - 0.3, direction=-1 if terminal else 0, terminal=terminal, capacity=4)
+    ts = jnp.linspace(0.3, TWO_PI - 0.3, 7)
+
+    def run(tol):
+        sol = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=TWO_PI, controller=gj.PIDController(tol, tol),
+                           save_at=ts, events=event, dense=True)
+        return sol, sol.evaluate(jnp.linspace(0.1, 2.0, 5))
+
+    tols = jnp.array([1e-5, 1e-10])
+    batch = jax.vmap(run)(tols)
+    for b, tol in enumerate(tols):
+        single = run(float(tol))
+        leaves, single_leaves = jax.tree_util.tree_leaves_with_path(batch), jax.tree.leaves(single)
+        assert len(leaves) == len(single_leaves) > 20
+        for (path, x), y in zip(leaves, single_leaves):
+            if "batch_newton_iterations" not in jax.tree_util.keystr(path):  # the batch's, by definition
+                np.testing.assert_allclose(np.asarray(x)[b], np.asarray(y), rtol=0, atol=1e-13)
+    steps = np.asarray(batch[0].stats["num_accepted_steps"])
+    assert steps.tolist() == ([25, 216] if terminal else [51, 474])
