@@ -22,9 +22,9 @@ kept: the peers part's gradient / forward ratios at the default max_steps agains
     elements whose roots a gradient keeps (``_adjoint.KEPT_ELEMENTS``), each in a fresh process.
 members: a controller's sweep over 8 tolerances (1e-4 to 1e-11, each member its own steps) of Kepler
     e = 0.9 (the peers part's) and of the FPUT chain of 6 masses (the max_steps part's, PID, h0 =
-    0.05): d/dq0 of the sum of |q(T)|^2, all members at once (``vmap``) and with ``batch_size`` 1
-    and 4 (chunks one after another), beside the sum of the members' gradients alone
-    (``integrate``); compile and run times apart.
+    0.05): d/dq0 of the sum of |q(T)|^2 (and its forward-mode product along ones), all members
+    at once (``vmap``) and with ``batch_size`` 1 and 4 (chunks one after another), beside the sum
+    of the members' gradients alone (``integrate``); compile and run times apart.
 fixed: gradients through fixed steps (d/dq0 of |q_N|^2 + |p_N|^2): Kepler e = 0.5 over one orbit,
     cG(6) + Gauss 6, 126 steps; the same with cG(2) + Gauss 3, h = 0.01, 2000 steps,
     ``checkpoint=True``; FPUT N = 64, cG(4) + Gauss 4, h = 0.035, 286 steps. Compile and run
@@ -416,8 +416,9 @@ def members_part(tolerances=tuple(10.0 ** -np.arange(4, 12))):
             key = "vmap" if batch_size is None else f"batch_size_{batch_size}"
             forward = timed(lambda x: loss(x, batch_size), q0s)
             gradient = timed(jax.grad(lambda x: loss(x, batch_size)), q0s)
+            tangent = timed(lambda x: jax.jvp(lambda x: loss(x, batch_size), (x,), (jnp.ones_like(x),))[1], q0s)
             case[key] = dict(forward_compile_s=forward[0], forward_s=forward[1], gradient_compile_s=gradient[0],
-                             gradient_s=gradient[1])
+                             gradient_s=gradient[1], tangent_compile_s=tangent[0], tangent_s=tangent[1])
         print(label, json.dumps(case), flush=True)
         results[label] = case
     return results

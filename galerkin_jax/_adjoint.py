@@ -127,19 +127,21 @@ def run(spec, inputs):
 
 
 def _apart(sweep):
-    """``sweep(*args)``, whose members under ``vmap`` on a CPU run one after another
-    (``lax.map``), each for its own elements, instead of all at once for the longest member's.
-    There a batched element costs about its members' elements alone (their tangents are
-    factorised and multiplied member by member), so a batch would only add the wait; an
-    accelerator, where it costs about one member's, keeps the batch."""
+    """``sweep(inputs, c, x)``, a sweep over the elements of the forward run ``c``, whose members,
+    under ``vmap`` on a CPU, run one after another (``lax.map``), each for its own elements,
+    where the forward run is batched (its members took their own steps), instead of all at once
+    for the longest member's. There a batched element costs about its members' elements alone
+    (their tangents are factorised and multiplied member by member), so a batch would only add
+    the wait; an accelerator, where it costs about one member's, keeps the batch. So does a
+    batch of cotangents of one run (``jacrev``), which shares its elements' roots and
+    linearisations."""
     if jax.default_backend() != "cpu":
         return sweep
 
-    def call(*args):
+    def call(inputs, c, x):
         # the sweep's constants (the residuals of a vmapped vjp may batch them) as arguments too:
         # a rule may map every operand
-        traced = jax.make_jaxpr(sweep, return_shape=True)
-        closed, shape = traced(*args)
+        closed, shape = jax.make_jaxpr(sweep, return_shape=True)(inputs, c, x)
         structure = jax.tree.structure(shape)
         evaluate = lambda consts, *args: jax.tree.unflatten(structure, jax.core.eval_jaxpr(
             closed.jaxpr, consts, *jax.tree.leaves(args)))
@@ -147,6 +149,10 @@ def _apart(sweep):
 
         @apart.def_vmap
         def _(axis_size, in_batched, *args):
+            if not any(jax.tree.leaves(in_batched[2])):  # one forward run: keep the batch
+                axes = jax.tree.map(lambda b: 0 if b else None, in_batched)
+                out = jax.vmap(evaluate, in_axes=axes)(*args)
+                return out, jax.tree.map(lambda _: True, out)
             leaves, tree = jax.tree.flatten(args)
             batched = jax.tree.leaves(in_batched)
 
@@ -157,7 +163,7 @@ def _apart(sweep):
             out = jax.lax.map(member, [x for x, b in zip(leaves, batched) if b])
             return out, jax.tree.map(lambda _: True, out)
 
-        return apart(list(closed.consts), *args)
+        return apart(list(closed.consts), inputs, c, x)
 
     return call
 
