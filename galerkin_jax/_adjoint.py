@@ -149,7 +149,8 @@ def _apart(sweep):
 
         @apart.def_vmap
         def _(axis_size, in_batched, *args):
-            if not any(jax.tree.leaves(in_batched[2])):  # one forward run: keep the batch
+            _, _, c_batched, _ = in_batched  # (consts, inputs, c, x)
+            if not any(jax.tree.leaves(c_batched)):  # one forward run: keep the batch
                 axes = jax.tree.map(lambda b: 0 if b else None, in_batched)
                 out = jax.vmap(evaluate, in_axes=axes)(*args)
                 return out, jax.tree.map(lambda _: True, out)

@@ -186,8 +186,9 @@ def _members(one, batch_size, *xs):
 
 
 def _check_batch_size(batch_size, devices, progress):
+    """``batch_size`` as a Python int (a static argument), or None; bad values raise."""
     if batch_size is None:
-        return
+        return None
     if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
         raise ValueError(f"batch_size must be a positive integer or None, got {batch_size!r}.")
     if devices is not None:
@@ -196,6 +197,7 @@ def _check_batch_size(batch_size, devices, progress):
     if progress:
         raise ValueError("batch_size and progress exclude each other: the bar counts the elements of members "
                          "that advance together.")
+    return int(batch_size)
 
 
 def _shard(tree, devices):
@@ -272,7 +274,7 @@ def sweep(
         ``SweepResult`` with a leading axis B on every field.
     """
     _span.check_span(n_steps, t0, t1, controller)
-    _check_batch_size(batch_size, devices, progress)
+    batch_size = _check_batch_size(batch_size, devices, progress)
     if t1 is not None and save_every is not None:
         raise ValueError("save_every needs n_steps: a sweep to t1 saves no trajectory.")
     counts = None
@@ -305,10 +307,10 @@ def sweep(
     span = (jnp.asarray(t0, dtype), None if t1 is None else jnp.asarray(t1, dtype))
     if controller is None:
         result = _run(H, tuple(invariants.items()), n_steps or counts, save_every, options, checkpoint,
-                      bool(progress), estimate, batch_size and int(batch_size), *inputs[:2], *span)
+                      bool(progress), estimate, batch_size, *inputs[:2], *span)
     else:
         result = _run_adaptive(H, tuple(invariants.items()), max_steps or DEFAULT_MAX_STEPS, options, estimate,
-                               checkpoint, batch_size and int(batch_size), inputs[0], inputs[1], *span, inputs[2])
+                               checkpoint, batch_size, inputs[0], inputs[1], *span, inputs[2])
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
     if throw:
