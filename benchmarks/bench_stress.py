@@ -8,7 +8,9 @@ this records plain Newton's iterations (a fresh dense Jacobian every iteration, 
 written in the test independently of the library), the solver's at the default options and
 with the watchdog off (``SolverOptions(watch=0)``: halving from the first full step that
 raises the residual, as before issue 23), the ratio to plain Newton, the status, and the
-distance between the two roots in units of eps times the state's size. Writes
+distance between the two roots in units of eps times the state's size, and the element
+tangent that derivatives solve, matrix-free (Richardson's iteration, then GMRES) at plain
+Newton's root against LU's, in units of eps cond(dR/dZ) (``test_stress.tangent_error``). Writes
 results/stress.json.
 """
 
@@ -34,7 +36,7 @@ def row(name):
         method, H, q, p, h, dict(keywords, solver=gj.SolverOptions(watch=0)))
     return {"plain_newton_iterations": plain, "iterations": ours, "ratio": ours / plain, "status": status,
             "root_difference_eps": difference, "iterations_without_watchdog": no_watch,
-            "status_without_watchdog": no_watch_status}
+            "status_without_watchdog": no_watch_status, "tangent_error_cond_eps": test_stress.tangent_error(name)}
 
 
 def main():
@@ -43,13 +45,15 @@ def main():
         rows[name] = r = row(name)
         print(f"{name:82} plain {r['plain_newton_iterations']:3d}  ours {r['iterations']:3d}  "
               f"(x{r['ratio']:.2f})  status {r['status']}  root difference {r['root_difference_eps']:7.2f} eps  "
-              f"without watchdog {r['iterations_without_watchdog']:3d} (status {r['status_without_watchdog']})",
+              f"without watchdog {r['iterations_without_watchdog']:3d} (status {r['status_without_watchdog']})  "
+              f"tangent error {r['tangent_error_cond_eps']:5.1f} cond eps",
               flush=True)
     ratios = np.array([r["ratio"] for r in rows.values()])
     summary = {"cases": len(rows), "max_ratio": float(ratios.max()), "mean_ratio": float(ratios.mean()),
                "failures": sum(r["status"] != 0 for r in rows.values()),
                "failures_without_watchdog": sum(r["status_without_watchdog"] != 0 for r in rows.values()),
-               "default_cap": gj.SolverOptions().max_iterations}
+               "default_cap": gj.SolverOptions().max_iterations,
+               "max_tangent_error_cond_eps": float(max(r["tangent_error_cond_eps"] for r in rows.values()))}
     print(summary)
     write("stress", {"summary": summary, "rows": rows})
 

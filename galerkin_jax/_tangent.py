@@ -17,9 +17,11 @@ cotangent meets ``(dR/dZ)^{-T}``. The linear solve follows the forward solve of 
   never an n x n matrix, and a product costs about one linearised residual evaluation, where
   the matrix costs n of them and its LU n^3 / 3 multiplications.
 
-Both stop at a relative residual ``|dR/dZ dZ - b| <= TOLERANCE eps |b|``: there are no
-later updates to refine the tangent (unlike a Newton direction), and the error of every
-element's tangent is carried into the gradient of the whole run. Its result is accepted when
+Both stop at a relative residual ``|dR/dZ dZ - b| <= TOLERANCE eps |b|`` (Richardson's, like
+the forward solve, where the residual its last update leaves, estimated from its contraction
+rate, is below it): there are no later updates to refine the tangent (unlike a Newton
+direction), and the error of every element's tangent is carried into the gradient of the
+whole run. GMRES's result is accepted when
 its residual, recomputed, is below ``sqrt(eps) |b|`` (the forward solve's bound on an
 accepted residual): that admits the floor ``~eps cond(dR/dZ) |b|`` of an ill-conditioned
 matrix, where GMRES runs out of restarts without reaching its tolerance. A solve left above
@@ -78,23 +80,33 @@ def _iterated(matvec, b):
     """``x`` with ``matvec(x) = b`` by Richardson's iteration x <- x + (b - matvec(x)), which
     contracts where the forward solve's fixed point does (the element Jacobian is I minus its
     iteration's), at the cost of one product per iteration and nothing else; GMRES (``_gmres``)
-    from where it stopped, where it did not reach the tolerance (a stiff element)."""
+    from where it stopped, where it did not reach the tolerance (a stiff element).
+
+    The residual r = b - matvec(x) is the next update, and the residuals contract at the rate
+    theta of the last two: the stopping rule is the forward solve's (``_solve``), what the
+    updates after this one add up to, ``|r| theta / (1 - theta)``, below the tolerance (or |r|
+    itself), and the converged x gets the update r, whose product is never taken. At the fixed
+    point's fast contraction this saves the product that would only confirm it."""
     eps = jnp.finfo(b.dtype).eps
-    limit = (TOLERANCE * eps) ** 2 * jnp.sum(b * b)
+    limit = TOLERANCE * eps * jnp.sqrt(jnp.sum(b * b))
+
+    def converged(k, r_size, theta):  # theta is measured from the first product on
+        return (r_size <= limit) | ((k > 0) & (theta <= 0.5) & (r_size * theta <= (1.0 - theta) * limit))
 
     def going(s):
-        k, _, _, r2, shrinking = s
-        return (k < RICHARDSON) & (r2 > limit) & shrinking
+        k, _, _, r_size, theta = s
+        return (k < RICHARDSON) & ~converged(k, r_size, theta) & (theta < 1.0)
 
     def step(s):  # x and its residual r = b - matvec(x)
-        k, x, r, r2, _ = s
+        k, x, r, r_size, _ = s
         x = x + r
         r_new = b - matvec(x)
-        r2_new = jnp.sum(r_new * r_new)
-        return k + 1, x, r_new, r2_new, r2_new < r2
+        r_size_new = jnp.sqrt(jnp.sum(r_new * r_new))
+        return k + 1, x, r_new, r_size_new, r_size_new / r_size
 
-    _, x, _, r2, _ = jax.lax.while_loop(going, step, (0, jnp.zeros_like(b), b, jnp.sum(b * b), jnp.ones((), bool)))
-    return jax.lax.cond(r2 <= limit, lambda x: x, lambda x: _gmres(matvec, b, x), x)
+    s = (0, jnp.zeros_like(b), b, jnp.sqrt(jnp.sum(b * b)), jnp.zeros((), b.dtype))
+    k, x, r, r_size, theta = jax.lax.while_loop(going, step, s)
+    return jax.lax.cond(converged(k, r_size, theta), lambda x, r: x + r, lambda x, r: _gmres(matvec, b, x), x, r)
 
 
 def _gmres(matvec, b, x0):
