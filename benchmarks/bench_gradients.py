@@ -1,6 +1,7 @@
 """Gradients through runs whose steps a controller chooses: paid for by the steps taken.
 
-    python benchmarks/bench_gradients.py [--only max_steps peers long fixed kept products members] [--name gradients]
+    python benchmarks/bench_gradients.py [--only max_steps peers long fixed kept products members scheduler]
+        [--name gradients]
     python benchmarks/bench_gradients.py --only fixed --baseline 5bbacdc --name gradients_fixed
 
 max_steps: the beta-FPUT chain of 6 masses (12 unknowns; ``scenes.fput``), cG(4) + Gauss 4,
@@ -25,6 +26,9 @@ members: a controller's sweep over 8 tolerances (1e-4 to 1e-11, each member its 
     0.05): d/dq0 of the sum of |q(T)|^2 (and its forward-mode product along ones), all members
     at once (``vmap``) and with ``batch_size`` 1 and 4 (chunks one after another), beside the sum
     of the members' gradients alone (``integrate``); compile and run times apart.
+scheduler: the peers part's gradient / forward ratios at the default max_steps in six fresh processes
+    with the default XLA flags and six with XLA's concurrency-optimised CPU scheduler off
+    (``SCHEDULER_FLAG``), alternately.
 fixed: gradients through fixed steps (d/dq0 of |q_N|^2 + |p_N|^2): Kepler e = 0.5 over one orbit,
     cG(6) + Gauss 6, 126 steps; the same with cG(2) + Gauss 3, h = 0.01, 2000 steps,
     ``checkpoint=True``; FPUT N = 64, cG(4) + Gauss 4, h = 0.035, 286 steps. Compile and run
@@ -35,6 +39,7 @@ fixed: gradients through fixed steps (d/dq0 of |q_N|^2 + |p_N|^2): Kepler e = 0.
 
 import argparse
 import json
+import os
 import pathlib
 import subprocess
 import sys
@@ -424,8 +429,51 @@ def members_part(tolerances=tuple(10.0 ** -np.arange(4, 12))):
     return results
 
 
+_SCHEDULER = textwrap.dedent("""
+    import json, sys
+    sys.path.insert(0, {here!r})
+    import jax, jax.numpy as jnp
+    jax.config.update("jax_enable_x64", True)
+    import bench_gradients as b
+    import galerkin_jax as gj
+    from _common import best_time, compiled
+    out = {{}}
+    for problem in (b.kepler, b.fput_large):  # in the peers part's order
+        label, H, q0, p0, T, method, tol = problem()
+        run = lambda q0: gj.integrate(H, q0, p0, method=method, h=0.01, t1=T, controller=gj.PIDController(tol, tol))
+        forward = best_time(compiled(lambda q0: run(q0).q[-1], q0)[1], q0, repeat=20)
+        gradient = best_time(compiled(jax.grad(lambda q0: jnp.sum(run(q0).q[-1] ** 2)), q0)[1], q0, repeat=20)
+        out[problem.__name__] = dict(forward_s=forward, gradient_s=gradient, gradient_over_forward=gradient / forward)
+    print(json.dumps(out))
+""")
+
+# XLA's CPU scheduler that orders a program's operations for concurrency (on by default)
+SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+
+
+def scheduler_part(processes=6):
+    """The peers part's runs at the default max_steps, each process computing Kepler's gradient
+    and then the chain's (as the peers part does), ``processes`` fresh processes with the
+    default XLA flags and as many with XLA's concurrency-optimised CPU scheduler off
+    (``SCHEDULER_FLAG``), alternately: whether a gradient's time depends on how XLA's runtime
+    spreads the loop bodies' small kernels over the threads."""
+    results = {"default": [], "scheduler_off": []}
+    for _ in range(processes):
+        for key, flags in (("default", ""), ("scheduler_off", SCHEDULER_FLAG)):
+            env = dict(os.environ, XLA_FLAGS=" ".join(filter(None, [os.environ.get("XLA_FLAGS", ""), flags])))
+            code = _SCHEDULER.format(here=str(pathlib.Path(__file__).parent))
+            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+            results[key].append(json.loads(done.stdout.strip().splitlines()[-1]))
+            print(key, {k: round(v["gradient_over_forward"], 2) for k, v in results[key][-1].items()}, flush=True)
+    for key in ("default", "scheduler_off"):
+        for problem in ("kepler", "fput_large"):
+            ratios = sorted(r[problem]["gradient_over_forward"] for r in results[key])
+            results[f"{key}_{problem}_ratios"] = dict(min=ratios[0], median=float(np.median(ratios)), max=ratios[-1])
+    return results
+
+
 PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "fixed": fixed_part, "kept": kept_part,
-         "products": products_part, "members": members_part}
+         "products": products_part, "members": members_part, "scheduler": scheduler_part}
 
 
 def main():
