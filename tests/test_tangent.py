@@ -167,3 +167,27 @@ def test_second_derivatives_see_the_root_move(n):
     reverse_over_reverse = jax.jit(jax.grad(lambda p: jax.grad(loss)(p) @ w))(p)
     for hvp in (forward_over_reverse, reverse_over_reverse):
         np.testing.assert_allclose(hvp, w * second * w, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("rate, products", [(1e-4, 3), (1e-2, 6), (0.3, 26)])
+def test_richardson_stops_when_the_update_it_takes_leaves_the_tolerance(rate, products):
+    """A = I - rate Q, Q orthogonal: Richardson's residuals contract by exactly ``rate`` a
+    product, |r_k| = rate^k |b|. The rule stops at the first k with |r_k| rate / (1 - rate) below
+    64 eps |b| = 1.4e-14 |b| and takes the update r_k without a product: k = 3, 6 and 26 products
+    here, where a stop at |r_k| below the tolerance itself takes 4, 7 and 27. The result's
+    residual, recomputed, is rate^(k + 1) |b| (1e-16, 1e-14 and 7.6e-15 relative), below the
+    tolerance, as the rule's (1 - rate) guarantees for an exact contraction."""
+    n = 40
+    Q, _ = np.linalg.qr(np.random.default_rng(10).normal(size=(n, n)))
+    A = jnp.asarray(np.eye(n) - rate * Q)
+    b = jnp.asarray(np.random.default_rng(11).normal(size=n))
+    count = [0]
+
+    def matvec(x):
+        jax.debug.callback(lambda: count.__setitem__(0, count[0] + 1))
+        return A @ x
+
+    x = jax.jit(lambda b: _tangent._iterated(matvec, b))(b)
+    assert count[0] == products
+    residual = float(jnp.linalg.norm(A @ x - b) / jnp.linalg.norm(b))
+    assert residual <= _tangent.TOLERANCE * np.finfo(np.float64).eps
