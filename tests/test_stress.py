@@ -192,8 +192,8 @@ def tangent_error(name):
 
 
 # a case of each kind for the tangents (each compiles its own solves; ``bench_stress.py`` runs all):
-# Richardson's iteration to the end (the pendulum, FPUT's Gauss-Seidel sweep), GMRES after it,
-# a method without a fixed point, a time-symmetric one, a non-separable H
+# Richardson's iteration alone (the pendulum), GMRES after it (the rest: FPUT's Gauss-Seidel sweep,
+# a time-symmetric method, a method without a fixed point, a discrete gradient, a non-separable H)
 TANGENT_CASES = ["pendulum near the separatrix h = 1, cG(3) + Gauss 3",
                  "FPUT N = 48 h = 1, cG(3) + Gauss 3, krylov (no dense matrix)",
                  "FPUT N = 16 at 10x momenta h = 0.5, GalerkinVI(2) + Gauss 2 (fixed point first)",
