@@ -292,7 +292,7 @@ def fixed_part(baseline=None):
     return results
 
 
-_KEPT = textwrap.dedent("""
+_RATIOS = textwrap.dedent("""
     import json, sys
     sys.path.insert(0, {here!r})
     import jax, jax.numpy as jnp
@@ -301,13 +301,26 @@ _KEPT = textwrap.dedent("""
     import galerkin_jax as gj
     from galerkin_jax import _adjoint
     from _common import best_time, compiled
-    _adjoint.KEPT_ELEMENTS = {kept}
-    label, H, q0, p0, T, method, tol = b.{problem}()
-    run = lambda q0: gj.integrate(H, q0, p0, method=method, h=0.01, t1=T, controller=gj.PIDController(tol, tol))
-    forward = best_time(compiled(lambda q0: run(q0).q[-1], q0)[1], q0, repeat=40)
-    gradient = best_time(compiled(jax.grad(lambda q0: jnp.sum(run(q0).q[-1] ** 2)), q0)[1], q0, repeat=40)
-    print(json.dumps(dict(forward_s=forward, gradient_s=gradient, gradient_over_forward=gradient / forward)))
+    if {kept} is not None:
+        _adjoint.KEPT_ELEMENTS = {kept}
+    out = {{}}
+    for problem in {problems}:
+        label, H, q0, p0, T, method, tol = getattr(b, problem)()
+        run = lambda q0: gj.integrate(H, q0, p0, method=method, h=0.01, t1=T, controller=gj.PIDController(tol, tol))
+        forward = best_time(compiled(lambda q0: run(q0).q[-1], q0)[1], q0, repeat={repeat})
+        gradient = best_time(compiled(jax.grad(lambda q0: jnp.sum(run(q0).q[-1] ** 2)), q0)[1], q0, repeat={repeat})
+        out[problem] = dict(forward_s=forward, gradient_s=gradient, gradient_over_forward=gradient / forward)
+    print(json.dumps(out))
 """)
+
+
+def ratios(problems, kept=None, repeat=40, env=None):
+    """The gradient / forward ratios of the peers part's runs at the default max_steps, in one
+    fresh process that times ``problems`` (names of this module's scenes) in order, with
+    ``_adjoint.KEPT_ELEMENTS`` = ``kept`` (None: the library's) and the environment ``env``."""
+    code = _RATIOS.format(here=str(pathlib.Path(__file__).parent), kept=kept, problems=tuple(problems), repeat=repeat)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def kept_part():
@@ -318,9 +331,7 @@ def kept_part():
     for problem in ("kepler", "fput_large"):
         results[problem] = {}
         for kept in (0, 256, 512, 1024, 4096):
-            code = _KEPT.format(here=str(pathlib.Path(__file__).parent), kept=kept, problem=problem)
-            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-            results[problem][kept] = json.loads(done.stdout.strip().splitlines()[-1])
+            results[problem][kept] = ratios([problem], kept)[problem]
             ratio = results[problem][kept]["gradient_over_forward"]
             print(f"{problem:10s} kept {kept:5d}: gradient / forward {ratio:.2f}", flush=True)
     return results
@@ -429,24 +440,6 @@ def members_part(tolerances=tuple(10.0 ** -np.arange(4, 12))):
     return results
 
 
-_SCHEDULER = textwrap.dedent("""
-    import json, sys
-    sys.path.insert(0, {here!r})
-    import jax, jax.numpy as jnp
-    jax.config.update("jax_enable_x64", True)
-    import bench_gradients as b
-    import galerkin_jax as gj
-    from _common import best_time, compiled
-    out = {{}}
-    for problem in (b.kepler, b.fput_large):  # in the peers part's order
-        label, H, q0, p0, T, method, tol = problem()
-        run = lambda q0: gj.integrate(H, q0, p0, method=method, h=0.01, t1=T, controller=gj.PIDController(tol, tol))
-        forward = best_time(compiled(lambda q0: run(q0).q[-1], q0)[1], q0, repeat=20)
-        gradient = best_time(compiled(jax.grad(lambda q0: jnp.sum(run(q0).q[-1] ** 2)), q0)[1], q0, repeat=20)
-        out[problem.__name__] = dict(forward_s=forward, gradient_s=gradient, gradient_over_forward=gradient / forward)
-    print(json.dumps(out))
-""")
-
 # XLA's CPU scheduler that orders a program's operations for concurrency (on by default)
 SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 
@@ -461,14 +454,13 @@ def scheduler_part(processes=6):
     for _ in range(processes):
         for key, flags in (("default", ""), ("scheduler_off", SCHEDULER_FLAG)):
             env = dict(os.environ, XLA_FLAGS=" ".join(filter(None, [os.environ.get("XLA_FLAGS", ""), flags])))
-            code = _SCHEDULER.format(here=str(pathlib.Path(__file__).parent))
-            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
-            results[key].append(json.loads(done.stdout.strip().splitlines()[-1]))
+            results[key].append(ratios(["kepler", "fput_large"], repeat=20, env=env))  # the peers part's order
             print(key, {k: round(v["gradient_over_forward"], 2) for k, v in results[key][-1].items()}, flush=True)
     for key in ("default", "scheduler_off"):
         for problem in ("kepler", "fput_large"):
-            ratios = sorted(r[problem]["gradient_over_forward"] for r in results[key])
-            results[f"{key}_{problem}_ratios"] = dict(min=ratios[0], median=float(np.median(ratios)), max=ratios[-1])
+            measured = sorted(r[problem]["gradient_over_forward"] for r in results[key])
+            results[f"{key}_{problem}_ratios"] = dict(min=measured[0], median=float(np.median(measured)),
+                                                      max=measured[-1])
     return results
 
 

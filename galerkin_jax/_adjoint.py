@@ -151,17 +151,17 @@ def _apart(sweep):
         def _(axis_size, in_batched, *args):
             _, _, c_batched, _ = in_batched  # (consts, inputs, c, x)
             if not any(jax.tree.leaves(c_batched)):  # one forward run: keep the batch
-                axes = jax.tree.map(lambda b: 0 if b else None, in_batched)
-                out = jax.vmap(evaluate, in_axes=axes)(*args)
-                return out, jax.tree.map(lambda _: True, out)
-            leaves, tree = jax.tree.flatten(args)
-            batched = jax.tree.leaves(in_batched)
+                out = jax.vmap(evaluate, in_axes=jax.tree.map(lambda b: 0 if b else None, in_batched))(*args)
+            else:
+                leaves, tree = jax.tree.flatten(args)
+                batched = jax.tree.leaves(in_batched)
 
-            def member(mapped):
-                mapped = iter(mapped)
-                return evaluate(*jax.tree.unflatten(tree, [next(mapped) if b else x for x, b in zip(leaves, batched)]))
+                def member(mapped):
+                    mapped = iter(mapped)
+                    return evaluate(*jax.tree.unflatten(tree, [next(mapped) if b else x for x, b in
+                                                               zip(leaves, batched)]))
 
-            out = jax.lax.map(member, [x for x, b in zip(leaves, batched) if b])
+                out = jax.lax.map(member, [x for x, b in zip(leaves, batched) if b])
             return out, jax.tree.map(lambda _: True, out)
 
         return apart(list(closed.consts), inputs, c, x)

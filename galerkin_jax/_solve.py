@@ -79,6 +79,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _tangent
+from ._contraction import error_left_below
 from ._pytree import pytree_dataclass
 from ._solver_options import SolverOptions, solver_from
 
@@ -405,7 +406,7 @@ def _converged(problem, c, m):
     grown = (step >= m["before"]) | (step >= c["step"])  # within the block, or since the last one
     # the error left after this update is below the round-off of the unknowns (or the tolerance)
     limit = max(eps, problem.solver.tolerance)
-    strict = (step == 0) | ((theta <= 0.5) & (step * theta <= (1.0 - theta) * limit * z_size))
+    strict = (step == 0) | error_left_below(step, theta, limit * z_size)
     # round-off that still shrinks, by less than half an update, past the member's patience
     settled = noisy & ~grown & (theta > 0.5) & m["patience"]
     accept_here = (strict | settled) & ~m["bad"] & (r_size <= floor)

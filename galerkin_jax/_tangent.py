@@ -31,6 +31,8 @@ it did not converge, and gives NaN, not a finite wrong tangent.
 import jax
 import jax.numpy as jnp
 
+from ._contraction import error_left_below
+
 # GMRES stops at a relative residual of TOLERANCE * eps (float64: 1.4e-14, float32: 7.6e-6);
 # a tighter one sits below the round-off of a product with an O(1)-conditioned matrix
 TOLERANCE = 64
@@ -83,15 +85,15 @@ def _iterated(matvec, b):
     from where it stopped, where it did not reach the tolerance (a stiff element).
 
     The residual r = b - matvec(x) is the next update, and the residuals contract at the rate
-    theta of the last two: the stopping rule is the forward solve's (``_solve``), what the
+    theta of the last two: the stopping rule is the forward solve's (``_contraction``), what the
     updates after this one add up to, ``|r| theta / (1 - theta)``, below the tolerance (or |r|
     itself), and the converged x gets the update r, whose product is never taken. At the fixed
     point's fast contraction this saves the product that would only confirm it."""
-    eps = jnp.finfo(b.dtype).eps
-    limit = TOLERANCE * eps * jnp.sqrt(jnp.sum(b * b))
+    b_size = jnp.sqrt(jnp.sum(b * b))
+    limit = TOLERANCE * jnp.finfo(b.dtype).eps * b_size
 
     def converged(k, r_size, theta):  # theta is measured from the first product on
-        return (r_size <= limit) | ((k > 0) & (theta <= 0.5) & (r_size * theta <= (1.0 - theta) * limit))
+        return (r_size <= limit) | ((k > 0) & error_left_below(r_size, theta, limit))
 
     def going(s):
         k, _, _, r_size, theta = s
@@ -104,7 +106,7 @@ def _iterated(matvec, b):
         r_size_new = jnp.sqrt(jnp.sum(r_new * r_new))
         return k + 1, x, r_new, r_size_new, r_size_new / r_size
 
-    s = (0, jnp.zeros_like(b), b, jnp.sqrt(jnp.sum(b * b)), jnp.zeros((), b.dtype))
+    s = (0, jnp.zeros_like(b), b, b_size, jnp.zeros((), b.dtype))
     k, x, r, r_size, theta = jax.lax.while_loop(going, step, s)
     return jax.lax.cond(converged(k, r_size, theta), lambda x, r: x + r, lambda x, r: _gmres(matvec, b, x), x, r)
 
