@@ -84,6 +84,21 @@ def _pid_rule(controller, order, tiny):
     return rule, dict(err1=jnp.ones((), tiny.dtype), err2=jnp.ones((), tiny.dtype))
 
 
+def polynomial_size(method, H_bound, q0, p0):
+    """The coefficients m of the method's element polynomial (the embedded estimate's order)."""
+    guess = method.initial_guess(q0, p0)
+    return jax.eval_shape(lambda: method.polynomial(H_bound, q0, p0, guess, jnp.ones((), q0.dtype))).shape[0]
+
+
+def first_step(method, H, q0, p0, t0, t1, args, controller):
+    """A ``PIDController``'s first step where ``h=None``: ``initial_step`` for the method's
+    embedded order, a constant of the trajectory (no derivative)."""
+    H_bound = bind_args(H, args)
+    z0 = jnp.concatenate([q0, p0])
+    order = polynomial_size(method, H_bound, q0, p0)
+    return initial_step(symplectic_field(H_bound), z0, order, controller, jnp.abs(t1 - t0))
+
+
 def initial_step(field, z0, order, controller, span):
     """The first step of a controlled run where none is given: the starting step algorithm of
     Hairer, Norsett and Wanner (Solving ODEs I, Sec. II.4, as diffrax's), with the tolerances'
@@ -149,11 +164,11 @@ def element_count(t0, t1, h):
 EVENT_SAMPLES = 16
 
 
-def _event_crossings(events, gs, c, step, accept, clock):
+def _event_crossings(events, gs, c, step, accept, clock, W):
     """Each event's g sampled at ``EVENT_SAMPLES`` sub-intervals of the accepted element's
-    polynomial (its ends: the nodes): ``[(values, crossing, g_b)]``, ``crossing`` the
+    polynomial ``W`` (its ends: the nodes): ``[(values, crossing, g_b)]``, ``crossing`` the
     sub-intervals where g changes sign in the event's direction."""
-    z, W, t, h = step["z"], step["W"], step["t"], step["h"]
+    z, t, h = step["z"], step["t"], step["h"]
     alphas = jnp.linspace(0.0, 1.0, EVENT_SAMPLES + 1, dtype=z.dtype)
     inner = _output.on_polynomial(z, W, alphas[1:-1])
     inner_t = jax.vmap(lambda a: _output.time_at(z, W, a, t, h, clock))(alphas[1:-1])
@@ -166,8 +181,11 @@ def _event_crossings(events, gs, c, step, accept, clock):
 
 
 def _events_update(events, gs, c, step, accept, clock, samples, W):
-    """Locate every sign change ``samples`` found (``_event_crossings``), in order, on the
-    element's refined polynomial ``W`` (``_output.refined``) by ``_output.locate``. A terminal
+    """Locate every sign change of g on the element's refined polynomial ``W``
+    (``_output.refined``), in order, by ``_output.locate``: where the samples of the element's
+    own polynomial (``samples``, ``_event_crossings``) change sign, g is sampled again on ``W``,
+    whose brackets the roots are located in (a root beside a sample point may lie on the other
+    side of it on W). A terminal
     event's first crossing ends the run there; no later crossing of any event in the element
     counts. Returns the carry's event fields and ``(alpha_stop, ended)``: where a terminal event
     ended the run (inf: none did) and which (-1: none)."""
@@ -175,10 +193,12 @@ def _events_update(events, gs, c, step, accept, clock, samples, W):
     dtype = z.dtype
     alphas = jnp.linspace(0.0, 1.0, EVENT_SAMPLES + 1, dtype=dtype)
     found = []
-    for event, g, (values, crossing, g_b) in zip(events, gs, samples):
+    for k, (event, g, (_, crossing, g_b)) in enumerate(zip(events, gs, samples)):
         f = lambda a, g=g: g(_output.time_at(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
 
-        def located(_, f=f, crossing=crossing):
+        def located(_, f=f, k=k):
+            _, crossing, _ = _event_crossings(events[k:k + 1], gs[k:k + 1], dict(g_a=c["g_a"][k:k + 1]), step, accept,
+                                              clock, W)[0]
             roots = jax.vmap(lambda lo, hi: _output.locate(f, lo, hi, f(lo)))(alphas[:-1], alphas[1:])
             return jnp.where(crossing, roots, jnp.inf)
 
@@ -217,9 +237,10 @@ def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, 
     if observe is not None:
         c["acc"] = acc0
     if ts is not None:
-        first = jnp.where(ts[:, None] == t0, z0[None, :], jnp.nan)
-        nowhere = jnp.full(ts.shape, -1, jnp.int32)
-        c["saved"], c["index"] = (first, nowhere, jnp.zeros_like(ts)), jnp.sum(ts <= t0).astype(jnp.int32)
+        at_start = ts == t0
+        first = jnp.where(at_start[:, None], z0[None, :], jnp.nan)
+        places = jnp.where(at_start, _output.AT_START, _output.NOT_WRITTEN).astype(jnp.int32)
+        c["saved"], c["index"] = (first, places, jnp.zeros_like(ts)), jnp.sum(ts <= t0).astype(jnp.int32)
     if dense:
         c["node_t"] = jnp.full((max_steps + 1,), jnp.inf, dtype).at[0].set(t0)
         c["node_z"] = jnp.full((max_steps + 1,) + z0.shape, jnp.nan, dtype).at[0].set(z0)
@@ -273,14 +294,12 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     z0 = jnp.concatenate([q0, p0])
     dtype = z0.dtype
     guess = method.initial_guess(q0, p0)
-    m = jax.eval_shape(lambda: method.polynomial(H_bound, q0, p0, guess, jnp.ones((), dtype))).shape[0]
+    m = polynomial_size(method, H_bound, q0, p0)
     t0, t1 = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype)
     tiny = 16 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))
     pid = isinstance(controller, PIDController)
     if pid:
         rule, memory = _pid_rule(controller, m, tiny)
-        if h0 is None:
-            h0 = initial_step(symplectic_field(H_bound), z0, m, controller, t1 - t0)
         h0 = jnp.clip(h0, controller.dtmin, controller.dtmax)
         options = dataclasses.replace(options, varying_steps=True, short_lived_matrices=True)
     elif clock is not None:
@@ -293,6 +312,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     c = _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, events, gs, observe, acc0,
                        estimate, every)
     c.update(memory)
+    # a run backwards arrives flipped (``_integrate``); a traced t1 < t0 that was not is bad input
+    c["status"] = jnp.where(t1 > t0, c["status"], Status.INVALID_INPUT).astype(jnp.int32)
     if s is not None:
         s0 = s(*view(z0))
         c["status"] = jnp.where((s0 > 0) & jnp.isfinite(s0), c["status"], Status.TIME_TRANSFORM).astype(jnp.int32)
@@ -331,7 +352,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         # between the nodes the element's polynomial refined to the nodes' accuracy, where a
         # save time or an event lies in the element (every element for dense output)
         step = dict(step, t_b=verdict["t_b"])
-        samples = None if events is None else _event_crossings(events, gs, c, step, accept, clock)
+        samples = None if events is None else _event_crossings(events, gs, c, step, accept, clock, W)
         W_fine = None
         if dense is True or ts is not None or events is not None:
             refine = lambda W: _output.refined(method, H_bound, z, z1, W, h)
@@ -366,6 +387,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             new["node_t"] = c["node_t"].at[n + 1].set(end["t"], mode="drop")
             new["node_z"] = c["node_z"].at[n + 1].set(end["z"], mode="drop")
         if dense is True:
+            if events is not None and any(event.terminal for event in events):
+                W_fine = jnp.where(hit, _output.truncated(W_fine, at), W_fine)
             new["W"] = c["W"].at[n].set(W_fine, mode="drop")
         local = jnp.nan
         if estimate == "full":

@@ -123,6 +123,10 @@ def run(spec, inputs):
         return out, {**zero, **d_out}
 
     outputs.defjvp(outputs_jvp, symbolic_zeros=True)
+    if inputs["h"] is None:  # a PIDController's first step, picked here: a constant of the trajectory
+        h = _adaptive.first_step(inputs["method"], spec.H, inputs["q0"], inputs["p0"], inputs["t0"], inputs["t1"],
+                                 inputs["args"], inputs["controller"])
+        inputs = dict(inputs, h=jax.lax.stop_gradient(h))
     return outputs(inputs)
 
 
@@ -339,20 +343,6 @@ def _resolve(fn, theta, z, h, previous, matrix, options):
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _root(f, alpha, f_args):
-    """``alpha``, a root of ``f(alpha, *f_args)`` that the forward run located, with its tangent by
-    the implicit function theorem: d alpha = -(df/dargs . dargs) / (df/dalpha)."""
-    return alpha
-
-
-@_root.defjvp
-def _root_jvp(f, primals, tangents):
-    alpha, f_args = primals
-    _, df = jax.jvp(lambda a: f(alpha, *a), (f_args,), (tangents[1],))
-    return alpha, -df / jax.grad(f)(alpha, *f_args)
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _landing(end_time, h, z, theta, t1, Z):
     """A time-transformed run's last element's length in tau, h, which lands it on t1,
     ``end_time(z, theta, h, Z) = t1``; its tangent by the implicit function theorem."""
@@ -368,32 +358,25 @@ def _landing_jvp(end_time, primals, tangents):
     return h, (dt1 - moved) / rate
 
 
-def _time_at(clock, z, W, t_n, h, alpha):
-    """The time at alpha in an element: t_n + alpha h, or the clock coordinate of w."""
-    return _output.time_at(z, W, alpha, t_n, h, clock)
-
-
 def _save(clock, z, W, z1, t_n, h, ts, alpha, node):
-    """The state at the save time ``ts`` in an element: w at its alpha, or at a node (``node``
-    -1 the start, +1 the end) the node's state, w's jump there held."""
+    """The state at the save time ``ts`` in an element (``_output.state_at``), its alpha
+    ``(ts - t_n) / h``, or on a time-transformed run's clock the root that the run located."""
     if clock is None:
         alpha = (ts - t_n) / h
     else:
-        alpha = _root(lambda a, z, W, ts: _output.on_polynomial(z, W, a[None])[0, clock] - ts, alpha, (z, W, ts))
-    w = lambda a: _output.on_polynomial(z, W, a[None])[0]
-    jump = jnp.where(node < 0, z - w(jnp.zeros_like(alpha)), jnp.where(node > 0, z1 - w(jnp.ones_like(alpha)), 0.0))
-    return w(alpha) + jump
+        alpha = _output.root(lambda a, z, W, ts: _output.time_at(z, W, a, t_n, h, clock) - ts, alpha, (z, W, ts))
+    return _output.state_at(z, W, z1, alpha, node)
 
 
 def _event(g, clock, view, z, W, t_n, h, alpha):
-    """``(t*, z*)``: an event's time and state in an element, its alpha the root of
+    """``(t*, z*, alpha*)``: an event's time, state and place in an element, alpha* the root of
     g(t(alpha), w(alpha)) that the forward run located."""
 
     def g_at(a, z, W, t_n, h):
-        return g(_time_at(clock, z, W, t_n, h, a), *view(_output.on_polynomial(z, W, a[None])[0]))
+        return g(_output.time_at(z, W, a, t_n, h, clock), *view(_output.on_polynomial(z, W, a[None])[0]))
 
-    alpha = _root(g_at, alpha, (z, W, t_n, h))
-    return _time_at(clock, z, W, t_n, h, alpha), _output.on_polynomial(z, W, alpha[None])[0]
+    alpha = _output.root(g_at, alpha, (z, W, t_n, h))
+    return _output.time_at(z, W, alpha, t_n, h, clock), _output.on_polynomial(z, W, alpha[None])[0], alpha
 
 
 # ---------------------------------------------------------------------------------------------
@@ -421,37 +404,9 @@ def _terminal(spec):
     return spec.events is not None and any(event.terminal for event in spec.events)
 
 
-def _at_end(c, rows):
-    """Row 0 of the event that ended the run, from per-event ``rows``."""
-    return sum(jnp.where(c["ended"] == k, row[0], 0.0) for k, row in enumerate(rows))
-
-
 def _landed(spec, c, n):
     """Element n is the one that lands on t1: the last of a run that reached t1."""
     return (c["status"] == Status.SUCCESS) & ~_terminated(spec, c) & (n == c["steps"] - 1)
-
-
-def _places(c):
-    """Each save time's element, alpha and node (-1 its start, +1 its end, 0 inside); a save at t0
-    is element 0's start."""
-    elements, alphas = c["places"]
-    start = elements < 0
-    return jnp.where(start, 0, elements), jnp.where(start, 0.0, alphas), jnp.where(start, -1, jnp.where(
-        alphas == 1.0, 1, 0))
-
-
-def _replace(rows, k, row):
-    """The tuple ``rows`` with row k replaced."""
-    return rows[:k] + (row,) + rows[k + 1:]
-
-
-def _range(n, elements):
-    """``[lo, hi)``, where the sorted ``elements`` equal n."""
-    return jnp.searchsorted(elements, n, side="left"), jnp.searchsorted(elements, n, side="right")
-
-
-def _event_elements(spec, c, k):
-    return jnp.where(c["ev_n"][k] < 0, spec.max_steps + 1, c["ev_n"][k])
 
 
 def _resolve_options(spec, inputs):
@@ -487,116 +442,254 @@ class _Element:
             W = _output.refined(theta[0], bind_args(fn, theta[1]), z, z1, W, length)
         return z1, W, start, length
 
+    def local(self, hold):
+        """``(theta, (z, acc), (t0, t1, h)) -> ((z1, acc1), local)``: the element as a map of the
+        run's carry (its state and a sweep's diagnostics, ``Spec.observe``), and ``local``, what
+        its outputs read (``_kinds``): its start z, polynomial W, end z1, start time and length."""
+        spec = self.spec
+
+        def local(theta, carry, times):
+            z, acc = carry
+            z1, W, start, h = self.outputs(*hold(theta, z, *times))
+            acc1 = None if spec.observe is None else spec.observe(acc, *_output.user_view(z1, self.clock))
+            return (z1, acc1), dict(z=z, W=W, z1=z1, start=start, h=h)
+
+        return local
+
+
+# ---------------------------------------------------------------------------------------------
+# the outputs, each defined once as a function of the element that writes it; the sweeps take
+# its tangent (``jax.jvp``) and its cotangent (``jax.vjp``) from that one definition
+
+# the owner of a row that no element writes (sorted after every element)
+_NOWHERE = 2 ** 31 - 1
+
+
+@dataclasses.dataclass(frozen=True)
+class _Rows:
+    """Rows of the outputs ``keys`` written by the elements: row i is ``value(local, extra_i, i)``
+    of the element ``owner[i]`` (sorted; ``_NOWHERE``: no element wrote it, and its value is NaN),
+    ``local`` that element's ``_Element.local`` and ``extra`` a differentiable input read row by
+    row (the save times) or None. ``each``: every element n writes at most row ``owner(n)``
+    (a function; out of range: none), computed without a loop."""
+
+    keys: tuple
+    owner: object
+    value: object
+    extra: str = None
+    each: bool = False
+    written: object = None  # each: the rows some element writes (a boolean mask), None: all
+
+
+def _kinds(spec, inputs, c, clock, view):
+    """Every differentiable output of the run as ``_Rows``: the dense output's nodes and
+    polynomials, where the run ended, the states at the save times, and the events."""
+    steps, dtype = c["steps"], c["hs"].dtype
+    outside = spec.max_steps + 2  # a row index no output has
+    terminal = _terminal(spec)
+    ended_here = lambda n: _terminated(spec, c) & (n == steps - 1)
+
+    def ended(local):
+        """``(t*, z*, alpha*)`` of the terminal event that ended the run in this element."""
+        rows = [(k, e) for k, e in enumerate(spec.events) if e.terminal]
+        branch = lambda e, k: lambda: _event(e.g, clock, view, local["z"], local["W"], local["start"], local["h"],
+                                             c["ev_alpha"][k][0])
+        index = sum(jnp.where(c["ended"] == k, i, 0) for i, (k, _) in enumerate(rows))
+        return jax.lax.switch(index, [branch(e, k) for k, e in rows])
+
+    def end(local, n):
+        """Where element n ends: its end node, or where a terminal event ended the run in it."""
+        t_b = local["start"] + local["h"] if clock is None else local["z1"][clock]
+        if not terminal:
+            return local["z1"], t_b
+        return jax.lax.cond(ended_here(n), lambda: ended(local)[1::-1], lambda: (local["z1"], t_b))
+
+    def polynomial(local, n):
+        """Element n's polynomial; where a terminal event ended the run, on [t_n, t*]."""
+        if not terminal:
+            return local["W"]
+        return jax.lax.cond(ended_here(n), lambda: _output.truncated(local["W"], ended(local)[2]), lambda: local["W"])
+
+    start = lambda local: (local["z"], local["start"] if clock is None else local["z"][clock])
+    nodes = jnp.arange(spec.max_steps + 1)
+    kinds = [_Rows(("z", "t"), lambda n: jnp.where(n == steps - 1, 0, outside), lambda l, _, n: end(l, n), each=True)]
+    if spec.dense:
+        kinds.append(_Rows(("node_z", "node_t"), lambda n: jnp.where(n == 0, 0, outside), lambda l, _, n: start(l),
+                           each=True))
+        kinds.append(_Rows(("node_z", "node_t"), lambda n: n + 1, lambda l, _, n: end(l, n), each=True,
+                           written=nodes <= steps))
+    if spec.dense is True:
+        kinds.append(_Rows(("W",), lambda n: n, lambda l, _, n: (polynomial(l, n),), each=True))
+    if inputs["ts"] is not None:
+        elements, alphas = c["places"]
+        at_start = elements == _output.AT_START
+        owner = jnp.where(at_start, 0, jnp.where(elements == _output.NOT_WRITTEN, _NOWHERE, elements))
+        node = jnp.where(at_start, -1, jnp.where(alphas == 1.0, 1, 0))
+        alphas = jnp.where(at_start, 0.0, alphas).astype(dtype)
+        kinds.append(_Rows(("saved",), owner, lambda l, ts, i: (_save(clock, l["z"], l["W"], l["z1"], l["start"],
+                                                                       l["h"], ts, alphas[i], node[i]),),
+                           extra="ts"))
+    for k, event in enumerate(spec.events or ()):
+        owner = jnp.where(c["ev_n"][k] < 0, _NOWHERE, c["ev_n"][k])
+        kinds.append(_Rows((f"ev_t/{k}", f"ev_z/{k}"), owner,
+                           lambda l, _, i, k=k, g=event.g: _event(g, clock, view, l["z"], l["W"], l["start"], l["h"],
+                                                                  c["ev_alpha"][k][i])[:2]))
+    return kinds
+
+
+def _flat(tree):
+    """The outputs keyed by their place: event k's rows under ``"ev_t/k"``; ``z`` and ``t``,
+    which one element writes, as a row each."""
+    flat = {}
+    for key, value in tree.items():
+        if key in ("ev_t", "ev_z"):
+            flat.update({f"{key}/{k}": v for k, v in enumerate(value)})
+        else:
+            flat[key] = value[None] if key in ("z", "t") else value
+    return flat
+
+
+def _nested(flat):
+    """``_flat``'s inverse."""
+    tree = {}
+    for key, value in flat.items():
+        if "/" in key:
+            name, k = key.split("/")
+            tree.setdefault(name, {})[int(k)] = value
+        else:
+            tree[key] = value[0] if key in ("z", "t") else value
+    return {k: tuple(v[i] for i in range(len(v))) if isinstance(v, dict) else v for k, v in tree.items()}
+
+
+def _unwritten(kind, steps, size):
+    """The rows of ``kind`` that no element of the run wrote (their values are NaN)."""
+    if kind.each:
+        return jnp.zeros((size,), bool) if kind.written is None else ~kind.written
+    return kind.owner >= steps
+
+
+def _write_tangents(kinds, n, local, d_local, extra, d_extra, out):
+    """Element n's rows of every output: the tangents of their values (forward mode)."""
+    for kind in kinds:
+        if kind.each:
+            _, rows = jax.jvp(lambda l: kind.value(l, None, n), (local,), (d_local,))
+            out = dict(out, **{key: out[key].at[kind.owner(n)].set(row, mode="drop") for key, row in
+                               zip(kind.keys, rows)})
+            continue
+
+        def one(i, out, kind=kind):
+            x, dx = (None, None) if kind.extra is None else (extra[kind.extra][i], d_extra[kind.extra][i])
+            _, rows = jax.jvp(lambda l, x: kind.value(l, x, i), (local, x), (d_local, dx))
+            return dict(out, **{key: out[key].at[i].set(row) for key, row in zip(kind.keys, rows)})
+
+        out = jax.lax.fori_loop(*_range(n, kind.owner), one, out)
+    return out
+
+
+def _read_cotangents(kinds, n, local, extra, ct, extra_bar):
+    """Element n's rows of every output: their cotangents pulled back to the element's
+    ``local`` values and the row-wise inputs (reverse mode), the transpose of
+    ``_write_tangents``."""
+    local_bar = jax.tree.map(jnp.zeros_like, local)
+    for kind in kinds:
+        if kind.each:
+            _, pull = jax.vjp(lambda l: kind.value(l, None, n), local)
+            row = kind.owner(n)
+            (bar,) = pull(tuple(ct[key].at[row].get(mode="fill", fill_value=0) for key in kind.keys))
+            local_bar = jax.tree.map(jnp.add, local_bar, bar)
+            continue
+
+        def one(i, bars, kind=kind):
+            local_bar, extra_bar = bars
+            x = None if kind.extra is None else extra[kind.extra][i]
+            _, pull = jax.vjp(lambda l, x: kind.value(l, x, i), local, x)
+            bar, x_bar = pull(tuple(ct[key][i] for key in kind.keys))
+            if kind.extra is not None:
+                extra_bar = dict(extra_bar, **{kind.extra: extra_bar[kind.extra].at[i].add(x_bar)})
+            return jax.tree.map(jnp.add, local_bar, bar), extra_bar
+
+        local_bar, extra_bar = jax.lax.fori_loop(*_range(n, kind.owner), one, (local_bar, extra_bar))
+    return local_bar, extra_bar
+
+
+def _range(n, owner):
+    """``[lo, hi)``, where the sorted ``owner`` equals n."""
+    return jnp.searchsorted(owner, n, side="left"), jnp.searchsorted(owner, n, side="right")
+
+
+def _sweep_setup(spec, inputs, c):
+    fn, _, clock = _problem(spec, inputs)
+    view = lambda z: _output.user_view(z, clock)
+    return fn, clock, view, _kinds(spec, inputs, c, clock, view), _resolve_options(spec, inputs)
+
 
 def _tangent_sweep(spec, inputs, c, d, wanted):
     """The tangents of the differentiable outputs for the inputs' tangents ``d`` (forward mode),
-    ``wanted`` the inputs whose tangents are not zero (``_tangents``)."""
-    fn, _, clock = _problem(spec, inputs)
-    view = lambda z: _output.user_view(z, clock)
+    ``wanted`` the inputs whose tangents are not zero (``_tangents``): element after element,
+    each ``_Element.local`` and the rows it writes (``_write_tangents``) by ``jax.jvp``."""
+    fn, clock, view, kinds, options = _sweep_setup(spec, inputs, c)
     primal = tuple(inputs[k] for k in ("q0", "p0", "args", "t0"))
     (z0, run_args), (dz0, d_run_args) = jax.jvp(lambda *a: _start(spec, *a), primal,
                                                 tuple(d[k] for k in ("q0", "p0", "args", "t0")))
     theta, d_theta = (inputs["method"], run_args), (d["method"], d_run_args)
     times, d_times = tuple(inputs[k] for k in ("t0", "t1", "h")), tuple(d[k] for k in ("t0", "t1", "h"))
-    options = _resolve_options(spec, inputs)
+    extra, d_extra = {"ts": inputs["ts"]}, {"ts": d["ts"]}
     hold = _held(wanted)
     dtype = z0.dtype
-    out = {k: jax.tree.map(jnp.zeros_like, c[k]) for k in DIFFERENTIABLE if k in c and k != "acc"}
-    acc = d_acc = None
+    acc0 = d_acc0 = None
     if spec.observe is not None:
-        acc, d_acc = jax.jvp(spec.acc0, primal[:3], tuple(d[k] for k in ("q0", "p0", "args")))
-    if spec.dense:
-        out["node_z"] = out["node_z"].at[0].set(dz0)
-        out["node_t"] = out["node_t"].at[0].set(d["t0"] if clock is None else dz0[clock])
-    if "saved" in out:
-        elements, alphas, nodes = _places(c)
+        acc0, d_acc0 = jax.jvp(spec.acc0, primal[:3], tuple(d[k] for k in ("q0", "p0", "args")))
+    out = _flat({k: jax.tree.map(jnp.zeros_like, c[k]) for k in DIFFERENTIABLE if k in c and k != "acc"})
 
     def body(s):
-        n, z, dz, t_n, matrix, previous, ok, acc, d_acc, out = s
+        n, carry, d_carry, t_n, matrix, previous, ok, out = s
         element = _Element(spec, fn, inputs, c, clock, n, t_n, None)
-        Z, matrix, solved = _resolve(fn, theta, z, element.h_n, previous, matrix, options)
-        element.Z = Z
-        (z1, W, start, h), (dz1, dW, d_start, dh) = jax.jvp(lambda *a: element.outputs(*hold(*a)), (theta, z, *times),
-                                                            (d_theta, dz, *d_times))
-        if "saved" in out:
-            def save(i, saved):
-                _, d_value = jax.jvp(lambda z, W, z1, start, h, ts: _save(clock, z, W, z1, start, h, ts, alphas[i],
-                                                                          nodes[i]),
-                                     (z, W, z1, start, h, inputs["ts"][i]), (dz, dW, dz1, d_start, dh, d["ts"][i]))
-                return saved.at[i].set(d_value)
-
-            out = dict(out, saved=jax.lax.fori_loop(*_range(n, elements), save, out["saved"]))
-        for k, spec_event in enumerate(spec.events or ()):
-            def event(i, rows, k=k, g=spec_event.g):
-                _, (dt, dz_event) = jax.jvp(lambda z, W, start, h: _event(g, clock, view, z, W, start, h,
-                                                                          c["ev_alpha"][k][i]),
-                                            (z, W, start, h), (dz, dW, d_start, dh))
-                return rows[0].at[i].set(dt), rows[1].at[i].set(dz_event)
-
-            rows = jax.lax.fori_loop(*_range(n, _event_elements(spec, c, k)), event, (out["ev_t"][k], out["ev_z"][k]))
-            out = dict(out, ev_t=_replace(out["ev_t"], k, rows[0]), ev_z=_replace(out["ev_z"], k, rows[1]))
-        if spec.dense:
-            d_end = d_start + dh if clock is None else dz1[clock]
-            out = dict(out, node_z=out["node_z"].at[n + 1].set(dz1), node_t=out["node_t"].at[n + 1].set(d_end))
-            if spec.dense is True:
-                out["W"] = out["W"].at[n].set(dW)
-        if spec.observe is not None:
-            acc, d_acc = jax.jvp(lambda a, z1: spec.observe(a, *view(z1)), (acc, z1), (d_acc, dz1))
-        t_next = t_n + element.h_n if clock is None else z1[clock]
-        return n + 1, z1, dz1, t_next, matrix, (z, Z, element.h_n, jnp.ones((), bool)), ok & solved, acc, d_acc, out
+        element.Z, matrix, solved = _resolve(fn, theta, carry[0], element.h_n, previous, matrix, options)
+        (carry1, local), (d_carry1, d_local) = jax.jvp(element.local(hold), (theta, carry, times),
+                                                        (d_theta, d_carry, d_times))
+        out = _write_tangents(kinds, n, local, d_local, extra, d_extra, out)
+        t_next = t_n + element.h_n if clock is None else carry1[0][clock]
+        previous = (carry[0], element.Z, element.h_n, jnp.ones((), bool))
+        return n + 1, carry1, d_carry1, t_next, matrix, previous, ok & solved, out
 
     guess = inputs["method"].initial_guess(*jnp.split(z0, 2))
     previous = (z0, guess, jnp.ones((), dtype), jnp.zeros((), bool))
-    s = (jnp.zeros((), jnp.int32), z0, dz0, jnp.asarray(inputs["t0"], dtype), initial_matrix(guess, options), previous,
-         c["status"] == Status.SUCCESS, acc, d_acc, out)
-    *_, dz, _, _, _, ok, _, d_acc, out = jax.lax.while_loop(lambda s: s[0] < c["steps"], body, s)
-    terminated = _terminated(spec, c)
-    out["z"] = dz
-    out["t"] = jnp.asarray(d["t1"], dtype)
-    if _terminal(spec):
-        out["z"] = jnp.where(terminated, _at_end(c, out["ev_z"]), dz)
-        out["t"] = jnp.where(terminated, _at_end(c, out["ev_t"]), out["t"])
-        if spec.dense:
-            out["node_z"] = out["node_z"].at[c["steps"]].set(out["z"])
-            out["node_t"] = out["node_t"].at[c["steps"]].set(out["t"])
+    s = (jnp.zeros((), jnp.int32), (z0, acc0), (dz0, d_acc0), jnp.asarray(inputs["t0"], dtype),
+         initial_matrix(guess, options), previous, c["status"] == Status.SUCCESS, out)
+    *_, d_carry, _, _, _, ok, out = jax.lax.while_loop(lambda s: s[0] < c["steps"], body, s)
+    for kind in kinds:  # a row no element wrote has no tangent
+        for key in kind.keys:
+            unwritten = _unwritten(kind, c["steps"], out[key].shape[0])
+            out[key] = jnp.where(unwritten.reshape((-1,) + (1,) * (out[key].ndim - 1)), jnp.nan, out[key])
+    out = _nested(out)
     if spec.observe is not None:
-        out["acc"] = d_acc
+        out["acc"] = d_carry[1]
     # a run that failed, or an element not found again, has no tangent: NaN, never a plausible one
     return jax.tree.map(lambda x: jnp.where(ok, x, jnp.nan) if _inexact(x) else x, out)
 
 
 def _adjoint_sweep(spec, inputs, c, ct, wanted):
-    """The cotangents of the inputs for the outputs' cotangents ``ct`` (reverse mode); those
-    of inputs not in ``wanted`` (``_tangents``) are zero."""
-    fn, _, clock = _problem(spec, inputs)
-    view = lambda z: _output.user_view(z, clock)
+    """The cotangents of the inputs for the outputs' cotangents ``ct`` (reverse mode), the
+    transpose of ``_tangent_sweep``: element after element backwards, each
+    ``_Element.local`` and the rows it writes (``_read_cotangents``) by ``jax.vjp``; those of
+    inputs not in ``wanted`` (``_tangents``) are zero."""
+    fn, clock, view, kinds, options = _sweep_setup(spec, inputs, c)
     primal = tuple(inputs[k] for k in ("q0", "p0", "args", "t0"))
     (z0, run_args), start_vjp = jax.vjp(lambda *a: _start(spec, *a), *primal)
     theta = (inputs["method"], run_args)
     times = tuple(inputs[k] for k in ("t0", "t1", "h"))
-    options = _resolve_options(spec, inputs)
+    extra = {"ts": inputs["ts"]}
     hold = _held(wanted)
     dtype, steps, every = z0.dtype, c["steps"], c["kept"]["z"].shape[0]
     zeros = lambda tree: jax.tree.map(jnp.zeros_like, tree)
-    if "saved" in ct:
-        elements, alphas, nodes = _places(c)
-    # the end's cotangents go to the last node, or to a terminal event's row 0
-    terminated = _terminated(spec, c)
-    lam = jnp.where(terminated, 0.0, ct["z"])
-    times_bar = (jnp.zeros((), dtype), jnp.where(terminated, 0.0, ct["t"]).astype(dtype), jnp.zeros((), dtype))
-    if spec.events is not None:
-        ev_t_bar, ev_z_bar = list(ct["ev_t"]), list(ct["ev_z"])
-        if _terminal(spec):
-            node_z_bar = ct["node_z"][steps] if spec.dense else 0.0
-            node_t_bar = ct["node_t"][steps] if spec.dense else 0.0
-            for k in range(len(spec.events)):
-                ended = terminated & (c["ended"] == k)
-                ev_z_bar[k] = ev_z_bar[k].at[0].add(jnp.where(ended, ct["z"] + node_z_bar, 0.0))
-                ev_t_bar[k] = ev_t_bar[k].at[0].add(jnp.where(ended, ct["t"] + node_t_bar, 0.0))
-    if spec.dense:
-        lam = lam + jnp.where(terminated, 0.0, ct["node_z"][steps])
-    acc_bar = ct.get("acc")
-    ts_bar = None if inputs["ts"] is None else jnp.zeros_like(inputs["ts"])
+    ct = _flat({k: v for k, v in ct.items() if k != "acc"}) | {"acc": ct.get("acc")}
+    # a cotangent on a row that no element wrote (a NaN value) makes every cotangent NaN
+    poisoned = jnp.zeros((), bool)
+    for kind in kinds:
+        for key in kind.keys:
+            unwritten = _unwritten(kind, steps, ct[key].shape[0])
+            poisoned = poisoned | jnp.any(unwritten.reshape((-1,) + (1,) * (ct[key].ndim - 1)) & (ct[key] != 0))
+    acc0 = None if spec.observe is None else spec.acc0(*primal[:3])
     guess = inputs["method"].initial_guess(*jnp.split(z0, 2))
 
     def again(k, first, count, kept, ok):
@@ -623,48 +716,15 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
         """The ``length`` elements from ``first`` taken backwards, from their roots in ``kept``."""
 
         def back(j, s):
-            lam, acc_bar, theta_bar, times_bar, ts_bar = s
+            carry_bar, theta_bar, times_bar, extra_bar = s
             i = length - 1 - j
             n = first + i
-            z, acc = kept["z"][i], None if spec.observe is None else jax.tree.map(lambda a: a[i], kept["acc"])
+            acc = None if spec.observe is None else jax.tree.map(lambda a: a[i], kept["acc"])
             element = _Element(spec, fn, inputs, c, clock, n, kept["t"][i], kept["Z"][i])
-            (z1, W, start, h), element_vjp = jax.vjp(lambda *a: element.outputs(*hold(*a)), theta, z, *times)
-            local = dict(z=jnp.zeros_like(z), W=jnp.zeros_like(W), z1=lam, start=jnp.zeros((), dtype),
-                         h=jnp.zeros((), dtype), ts=ts_bar)
-            if spec.observe is not None:
-                acc_bar, z1_bar = jax.vjp(lambda a, z1: spec.observe(a, *view(z1)), acc, z1)[1](acc_bar)
-                local["z1"] = local["z1"] + z1_bar
-            if spec.dense is True:
-                local["W"] = ct["W"][n]
-            if spec.dense:
-                if clock is None:  # node n + 1's time is t_n + h_n
-                    local["start"], local["h"] = ct["node_t"][n + 1], ct["node_t"][n + 1]
-                else:
-                    local["z1"] = local["z1"].at[clock].add(ct["node_t"][n + 1])
-            if "saved" in ct:
-                def save(i, local):
-                    _, save_vjp = jax.vjp(lambda z, W, z1, start, h, ts: _save(clock, z, W, z1, start, h, ts,
-                                                                               alphas[i], nodes[i]),
-                                          z, W, z1, start, h, inputs["ts"][i])
-                    zb, Wb, z1b, sb, hb, tsb = save_vjp(ct["saved"][i])
-                    return dict(z=local["z"] + zb, W=local["W"] + Wb, z1=local["z1"] + z1b, start=local["start"] + sb,
-                                h=local["h"] + hb, ts=local["ts"].at[i].add(tsb))
-
-                local = jax.lax.fori_loop(*_range(n, elements), save, local)
-            for k, spec_event in enumerate(spec.events or ()):
-                def event(i, local, k=k, g=spec_event.g):
-                    _, event_vjp = jax.vjp(lambda z, W, start, h: _event(g, clock, view, z, W, start, h,
-                                                                         c["ev_alpha"][k][i]), z, W, start, h)
-                    zb, Wb, sb, hb = event_vjp((ev_t_bar[k][i], ev_z_bar[k][i]))
-                    return dict(local, z=local["z"] + zb, W=local["W"] + Wb, start=local["start"] + sb,
-                                h=local["h"] + hb)
-
-                local = jax.lax.fori_loop(*_range(n, _event_elements(spec, c, k)), event, local)
-            theta_b, z_b, *t_b = element_vjp((local["z1"], local["W"], local["start"], local["h"]))
-            lam = local["z"] + z_b + (ct["node_z"][n] if spec.dense else 0.0)
-            theta_bar = _add(theta_bar, theta_b)
-            times_bar = tuple(a + b for a, b in zip(times_bar, t_b))
-            return lam, acc_bar, theta_bar, times_bar, local["ts"]
+            (_, local), pull = jax.vjp(element.local(hold), theta, (kept["z"][i], acc), times)
+            local_bar, extra_bar = _read_cotangents(kinds, n, local, extra, ct, extra_bar)
+            theta_b, carry_bar, t_b = pull((carry_bar, local_bar))
+            return carry_bar, _add(theta_bar, theta_b), tuple(a + b for a, b in zip(times_bar, t_b)), extra_bar
 
         return jax.lax.fori_loop(0, length, back, s)
 
@@ -679,19 +739,17 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
         kept, ok = again(k, first, jnp.where(k == last, 0, length), kept, ok)
         return k - 1, kept, ok, *backwards(first, length, kept, tuple(bars))
 
-    s = (last, c["kept"], c["status"] == Status.SUCCESS, lam, acc_bar, zeros(theta), times_bar, ts_bar)
-    _, _, ok, lam, acc_bar, (method_bar, run_args_bar), times_bar, ts_bar = jax.lax.while_loop(
+    carry_bar = (jnp.zeros_like(z0), ct["acc"])
+    times_bar = tuple(jnp.zeros((), dtype) for _ in times)
+    extra_bar = {"ts": None if inputs["ts"] is None else jnp.zeros_like(inputs["ts"])}
+    s = (last, c["kept"], c["status"] == Status.SUCCESS, carry_bar, zeros(theta), times_bar, extra_bar)
+    _, _, ok, (lam, acc_bar), (method_bar, run_args_bar), (t0_bar, t1_bar, h_bar), extra_bar = jax.lax.while_loop(
         lambda s: s[0] >= 0, segment, s)
-    t0_bar, t1_bar, h_bar = times_bar
-    if spec.dense:
-        if clock is None:
-            t0_bar = t0_bar + ct["node_t"][0]
-        else:
-            lam = lam.at[clock].add(ct["node_t"][0])
     q0_bar, p0_bar, args_bar, t0_start_bar = start_vjp((lam, run_args_bar))
     if spec.observe is not None:
         q0_a, p0_a, args_a = jax.vjp(spec.acc0, *primal[:3])[1](acc_bar)
         q0_bar, p0_bar, args_bar = q0_bar + q0_a, p0_bar + p0_a, _add(args_bar, args_a)
-    bar = dict(q0=q0_bar, p0=p0_bar, args=args_bar, method=method_bar, t0=t0_bar + t0_start_bar, t1=t1_bar, ts=ts_bar,
-               h=h_bar)
-    return jax.tree.map(lambda x: jnp.where(ok, x, jnp.nan) if _inexact(x) else x, bar)
+    bar = dict(q0=q0_bar, p0=p0_bar, args=args_bar, method=method_bar, t0=t0_bar + t0_start_bar, t1=t1_bar,
+               ts=extra_bar["ts"], h=h_bar)
+    good = ok & ~poisoned
+    return jax.tree.map(lambda x: jnp.where(good, x, jnp.nan) if _inexact(x) else x, bar)

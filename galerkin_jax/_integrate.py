@@ -246,7 +246,7 @@ def integrate(
     flags = (checkpoint, bool(dense), bool(progress), estimate)
     single = isinstance(events, Event)
     events = _span.check_events(events, q0, p0, t0)
-    if t1 is not None and _span.concrete(t0, t1) and float(t1) < float(t0):
+    if t1 is not None and _span.backwards(t0, t1):
         sol = _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_at, events, save_every,
                          options, flags)
     else:
@@ -371,7 +371,17 @@ def _integrate(H, q0, p0, method, h, args, t0, t1, h_last, n_steps, save_every, 
     )
     if n_active is not None:
         final["status"] = short_of_t1(final["status"], t_end, t1)
+        final, saved, kept = _forwards_only(t0, t1, final, saved, kept)
     return solution(final, saved, kept, q0, p0, h, save_every, t0, t_end)
+
+
+def _forwards_only(t0, t1, final, saved, kept):
+    """A traced t1 < t0 whose order was not known when traced (``_span.backwards``) is bad input:
+    status INVALID_INPUT, NaN states (a run backwards arrives flipped where the order is known)."""
+    wrong = t1 < t0
+    final = dict(final, status=jnp.where(wrong, Status.INVALID_INPUT, final["status"]).astype(jnp.int32))
+    nan = lambda tree: jax.tree.map(lambda x: jnp.where(wrong, jnp.nan, x), tree)
+    return final, nan(saved), nan(kept)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14, 15, 16))

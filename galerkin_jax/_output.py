@@ -8,9 +8,11 @@ it, and holds the dense output of a run.
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _basis, _interpolate
 from ._pytree import pytree_dataclass
@@ -49,6 +51,49 @@ def time_at(z0, W, alpha, t0, h, clock):
     return on_polynomial(z0, W, alpha[None])[0, clock]
 
 
+def state_at(z0, W, z1, alpha, node):
+    """The state at ``alpha`` of one element: w(alpha), or at a node (``node`` -1 its start, +1
+    its end) the node's state, which a discontinuous w need not reach, plus w's change from
+    there (zero at the node itself, exactly): so a state at a node has w's slope in alpha. The
+    one definition of a state between nodes that ``save_at``, ``Solution.evaluate`` and their
+    derivatives read."""
+    w = lambda a: on_polynomial(z0, W, jnp.reshape(a, (1,)).astype(W.dtype))[0]
+    value = w(alpha)
+    at_start = z0 + (value - w(jnp.zeros_like(alpha)))
+    at_end = z1 + (value - w(jnp.ones_like(alpha)))
+    return jnp.where(node < 0, at_start, jnp.where(node > 0, at_end, value))
+
+
+def truncated(W, beta):
+    """The coefficients of a -> w(beta a) - z0, the element polynomial on [0, beta] mapped onto
+    [0, 1] (the element a terminal event ends at beta): its values at m Gauss points, fitted
+    again (exact: the same degree); differentiable in beta."""
+    m = W.shape[0]
+    points = jnp.asarray(np.polynomial.legendre.leggauss(m)[0] / 2 + 0.5, W.dtype)
+    V = _basis.legendre_values(points, m)
+    values = _basis.combine(_basis.legendre_values(beta * points, m), W)
+    return jnp.linalg.solve(V, values.reshape(m, -1)).reshape(W.shape)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def root(f, alpha, f_args):
+    """``alpha``, a root of ``f(alpha, *f_args)`` located beforehand, with its tangent by the
+    implicit function theorem: d alpha = -(df/dargs . dargs) / (df/dalpha)."""
+    return alpha
+
+
+@root.defjvp
+def _root_jvp(f, primals, tangents):
+    alpha, f_args = primals
+    _, df = jax.jvp(lambda a: f(alpha, *a), (f_args,), (tangents[1],))
+    return alpha, -df / jax.grad(f)(alpha, *f_args)
+
+
+def _unit(alpha):
+    """alpha held in [0, 1], its derivative kept at the ends (``jnp.clip`` halves it there)."""
+    return jnp.where(alpha < 0, jnp.zeros_like(alpha), jnp.where(alpha > 1, jnp.ones_like(alpha), alpha))
+
+
 def locate(f, lo, hi, f_lo, iterations=48):
     """The root of ``f`` in [lo, hi], where f(lo) = ``f_lo`` and f(hi) have opposite signs (or
     f(hi) = 0): Newton's method safeguarded by bisection (the Newton point replaces the bracket's
@@ -75,12 +120,19 @@ def locate(f, lo, hi, f_lo, iterations=48):
 
 
 def alpha_at_time(z0, W, t, t0, h, clock):
-    """alpha in [0, 1] with time(alpha) = t on one element (``t`` between its ends)."""
+    """alpha in [0, 1] with time(alpha) = t on one element (``t`` between its ends),
+    differentiable in t and the element (a time-transformed run's by the implicit function
+    theorem, ``root``)."""
     if clock is None:
-        return jnp.clip((t - t0) / h, 0.0, 1.0)
-    f = lambda a: time_at(z0, W, a, t0, h, clock) - t
+        return _unit((t - t0) / h)
+    f = lambda a, z0, W, t: time_at(z0, W, a, t0, h, clock) - t
     zero = jnp.zeros((), W.dtype)
-    return locate(f, zero, jnp.ones((), W.dtype), f(zero), iterations=24)
+    located = locate(lambda a: f(a, z0, W, t), zero, jnp.ones((), W.dtype), f(zero, z0, W, t), iterations=24)
+    return root(f, jax.lax.stop_gradient(located), (z0, W, t))
+
+
+# where a save time lies, besides an element's index: at t0 (the initial state), or not reached
+AT_START, NOT_WRITTEN = -1, -2
 
 
 def fill_saves(saved, index, ts, element, z_end, n):
@@ -88,7 +140,8 @@ def fill_saves(saved, index, ts, element, z_end, n):
 
     Args:
         saved: ``(values, elements, alphas)``: the states ``(len(ts), 2d)``, and where each lies:
-            the element's index and alpha (1 at its end, where the node value is taken).
+            the element's index and alpha (1 at its end, where the node value is taken);
+            ``AT_START`` a save at t0, ``NOT_WRITTEN`` one the run did not reach.
         index: the first time not yet written.
         ts: the sorted save times.
         element: ``(z0, W, t_a, t_b, h, clock)`` of the element.
@@ -106,21 +159,12 @@ def fill_saves(saved, index, ts, element, z_end, n):
     def write(c):
         (values, elements, alphas), i = c
         t = ts[i]
-        alpha = jnp.where(t == t_b, 1.0, alpha_at_time(z0, W, t, t_a, h, clock))
-        value = jnp.where(t == t_b, z_end, on_polynomial(z0, W, alpha[None])[0])
+        at_end = t == t_b
+        alpha = jnp.where(at_end, 1.0, alpha_at_time(z0, W, t, t_a, h, clock))
+        value = state_at(z0, W, z_end, alpha, at_end.astype(jnp.int32))
         return (values.at[i].set(value), elements.at[i].set(n), alphas.at[i].set(alpha)), i + 1
 
     return jax.lax.while_loop(more, write, (saved, index))
-
-
-def saved_states(ts_places, z0, starts, W, ends):
-    """The save states from a run's elements: ``starts``, ``W``, ``ends`` per element, and
-    ``ts_places = (elements, alphas)`` (``fill_saves``; element -1: the initial state)."""
-    elements, alphas = ts_places
-    n = jnp.maximum(elements, 0)
-    inside = jax.vmap(lambda n, a: on_polynomial(starts[n], W[n], a[None])[0])(n, alphas)
-    values = jnp.where((alphas == 1.0)[:, None], ends[n], inside)
-    return jnp.where((elements < 0)[:, None], z0[None, :], values)
 
 
 @pytree_dataclass
@@ -169,14 +213,14 @@ def evaluate(dense, t):
         dense, t = dataclasses.replace(dense, t=-dense.t, t_end=-dense.t_end, t1=-dense.t1, direction=1), -t
     N = dense.W.shape[0]
     starts = dense.t[:-1]
-    n = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, N - 1)
+    n = jnp.clip(jnp.searchsorted(starts, t, side="left") - 1, 0, N - 1)  # a node: the element it ends
     clock = dense.clock
 
     def one(t, n):
         z0, W, t_a, t_b = dense.z[n], dense.W[n], dense.t[n], dense.t[n + 1]
         alpha = alpha_at_time(z0, W, t, t_a, t_b - t_a, clock)
-        value = jnp.where(t == t_b, dense.z[n + 1], on_polynomial(z0, W, alpha[None])[0])
-        return jnp.where(t == t_a, z0, value)
+        node = jnp.where(t == t_a, -1, jnp.where(t == t_b, 1, 0))
+        return state_at(z0, W, dense.z[n + 1], alpha, node)
 
     values = jax.vmap(one)(t, n)
     inside = (t >= dense.t[0]) & (t <= dense.t_end)

@@ -17,6 +17,25 @@ def concrete(*xs):
     return all(not isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(xs))
 
 
+def known(x):
+    """``float(x)`` where x's value is known while tracing (concrete, or a JVP tracer of a concrete
+    value, as under ``jax.grad`` outside ``jit``), else None."""
+    if isinstance(x, jax.core.Tracer):
+        try:
+            x = x.to_concrete_value()
+        except AttributeError:  # a JAX without it: traced means unknown
+            return None
+    return None if x is None or jnp.ndim(x) != 0 else float(x)
+
+
+def backwards(t0, t1):
+    """The run goes backwards in time, t1 < t0, as far as it is known while tracing: under
+    ``jit`` or ``vmap`` a traced t1 < t0 is INVALID_INPUT at run time (the direction decides what
+    is compiled)."""
+    a, b = known(t0), known(t1)
+    return a is not None and b is not None and b < a
+
+
 def _scalar(name, x):
     if jnp.ndim(x) != 0:
         raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(x)}.")

@@ -135,3 +135,34 @@ def cg_element(k, H, z0, h, sweeps=100):
     q, p = jnp.split(z0, 2)
     C = jax.lax.fori_loop(0, sweeps, lambda _, C: C - method.residual(H, q, p, C, h), method.initial_guess(q, p))
     return z0 + C[0], method.polynomial(H, q, p, C, h)
+
+
+def first_derivative_errors(f, args, *, eps, seed=0):
+    """The disagreement ``check_first_derivatives`` bounds, measured: ``(forward, reverse)``, for
+    the same random t and c, the central difference D = (f(x + eps t) - f(x - eps t)) / (2 eps):
+    forward = max |J t - D| / max |D|, reverse = |<J^T c, t> - <c, D>| / sum |c D| (the size of
+    the terms of the dot product, which a cancelling sum could not make small)."""
+    rng = np.random.RandomState(seed)
+    args = tuple(jnp.asarray(x, jnp.asarray(x).dtype) for x in args)
+    tangent = tuple(jnp.asarray(rng.standard_normal(x.shape), x.dtype) for x in args)
+    out = jax.eval_shape(f, *args)
+    cotangent = jnp.asarray(rng.standard_normal(out.shape), out.dtype)
+    derivatives = first_derivatives(f, tangent, cotangent)
+
+    _, forward, reverse = derivatives(args)
+    shifted = lambda sign: derivatives(tuple(x + sign * eps * t for x, t in zip(args, tangent)))[0]
+    numerical = np.asarray((shifted(1.0) - shifted(-1.0)) / (2 * eps))
+    forward_error = float(np.max(np.abs(np.asarray(forward) - numerical)) / np.max(np.abs(numerical)))
+    projected = float(sum(jnp.vdot(c, t) for c, t in zip(reverse, tangent)))
+    c = np.asarray(cotangent)
+    reverse_error = abs(projected - float(np.vdot(c, numerical))) / float(np.sum(np.abs(c * numerical)))
+    return forward_error, reverse_error
+
+
+def check_first_derivatives_within(f, args, *, eps, forward, reverse, seed=0):
+    """``first_derivative_errors`` below the bounds ``forward`` and ``reverse``; returns the
+    measured pair (to print where a bound is being set)."""
+    errors = first_derivative_errors(f, args, eps=eps, seed=seed)
+    assert errors[0] <= forward, f"forward mode: J t is {errors[0]:.2e} from the central difference (bound {forward:.1e})"
+    assert errors[1] <= reverse, f"reverse mode: <J^T c, t> is {errors[1]:.2e} from <c, D> (bound {reverse:.1e})"
+    return errors

@@ -101,6 +101,48 @@ def test_a_first_step_of_half_a_period_is_rejected_not_fatal():
     assert error_after_one_orbit(sol) < 1e-10
 
 
+def starting_step(field, z0, order, tol, span):
+    """Hairer, Norsett and Wanner's starting step (Solving ODEs I, Sec. II.4), in NumPy, with the
+    scale tol + tol |z0| (rtol = atol = tol) and the RMS norm: h0' = 0.01 d0 / d1 from
+    d0 = ||z0||, d1 = ||f(z0)||; d2 = ||f(z0 + h0' f(z0)) - f(z0)|| / h0' from one explicit
+    Euler step; h1 = (0.01 / max(d1, d2))^(1 / order); h0 = min(100 h0', h1, span).
+    ``(h0, 100 h0', h1)``."""
+    norm = lambda x: np.sqrt(np.mean((x / (tol + tol * np.abs(z0))) ** 2))
+    f0 = field(z0)
+    d0, d1 = norm(z0), norm(f0)
+    h = 0.01 * d0 / d1
+    d2 = norm(field(z0 + h * f0) - f0) / h
+    h1 = (0.01 / max(d1, d2)) ** (1.0 / order)
+    return min(100 * h, h1, span), 100 * h, h1
+
+
+def kepler_field(z):
+    """Hamilton's field of H = |p|^2 / 2 - 1 / |q|, z = (q, p)."""
+    q, p = z[:2], z[2:]
+    return np.concatenate([p, -q / np.linalg.norm(q) ** 3])
+
+
+@pytest.mark.parametrize("e, tol, k, binding", [(0.5, 1e-8, 4, "h1"), (0.9, 1e-6, 6, "100 h0'")])
+def test_a_controller_picks_hairer_norsett_wanners_first_step(e, tol, k, binding):
+    """h=None under a PIDController: the first step the run takes is Hairer, Norsett and
+    Wanner's starting step, computed here in NumPy from Kepler's field (``starting_step``) with
+    the order of the embedded estimate, cG(k)'s k + 1 coefficients. Read from a run stopped
+    after one element (``max_steps=1``, that one accepted and none rejected, so it is the first
+    attempt's h). Kepler e = 0.5, cG(4), tol 1e-8: h1 = 8.10136e-3 binds (100 h0' = 0.164);
+    e = 0.9, cG(6), tol 1e-6: 100 h0' = 8.17683e-3 binds (h1 = 0.0305). Measured: equal to the
+    last digit printed (the same formula, in float64); asserted to 1e-12 relative, where a step
+    2x off fails by 1 and the order k in place of k + 1 (2.43e-3 at e = 0.5) by 0.7."""
+    H, q0, p0 = helpers.kepler(e)
+    z0 = np.concatenate([np.asarray(q0), np.asarray(p0)])
+    expected, h_euler, h_order = starting_step(kepler_field, z0, k + 1, tol, T)
+    assert expected == {"h1": h_order, "100 h0'": h_euler}[binding]
+    sol = gj.integrate(H, q0, p0, method=gj.CG(k, gj.gauss_legendre(k)), t1=T, controller=pid(tol), max_steps=1)
+    assert int(sol.status) == gj.Status.MAX_STEPS
+    assert int(sol.stats["num_accepted_steps"]) == 1 and int(sol.stats["num_rejected_steps"]) == 0
+    assert float(sol.stats["min_step"]) == float(sol.stats["max_step"]) == float(sol.t[-1] - sol.t[0])
+    assert float(sol.t[-1] - sol.t[0]) == pytest.approx(expected, rel=1e-12, abs=0)
+
+
 def test_the_predictive_controller_follows_the_way_into_a_pericentre():
     """Kepler e = 0.9 over two orbits from apocentre, cG(6) + Gauss 6, rtol = atol = 1e-8. On
     the way into each pericentre the I controller grows h after every accepted step and has the

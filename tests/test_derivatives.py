@@ -67,17 +67,21 @@ SECTION = gj.Event(lambda t, q, p: jnp.sin(3.0 * t) - 0.5 * q[0], capacity=8)
 
 @pytest.mark.parametrize("kind", ["fixed", "pid", "time-transform"])
 def test_every_output_of_a_run_against_central_differences(kind):
-    """The measured agreement, relative to the largest entry of J t: fixed steps 4e-10,
-    PID 1e-9 and the time-transformed run 3e-9 (central differences of step 1e-6 err by about
-    1e-10 here, and a controlled run's by its tolerance over the step, 1e-13 / 1e-6). Reverse
+    """The measured agreement (``helpers.first_derivative_errors``: forward, max |J t - D|
+    relative to max |D|; reverse, |<J^T c, t> - <c, D>| relative to sum |c D|): fixed steps
+    1.0e-9 and 1.2e-10, PID 5.5e-10 and 8.8e-11, the time-transformed run 1.4e-10 and 1.6e-11
+    (central differences of step 2e-7: the runs' round-off over the step; a controlled run's
+    steps, which move with the inputs, add their effect at the tolerance, 1e-13). Bounds about
+    20x each; the former atol 1e-7 and rtol 2e-6 were 500x to 5000x the agreement. Reverse
     mode takes the PID run's 635 elements in 10 stretches solved again from checkpoints
     (``checkpoint=True``: sqrt(max_steps) = 64 each), the time-transformed run's 50 from the
     roots the forward run kept."""
     controller = {"fixed": None, "pid": gj.PIDController(1e-13, 1e-13), "time-transform": gj.TimeTransform()}[kind]
     frozen = {"fixed": [], "pid": RULE + [H_INDEX], "time-transform": [H_INDEX]}[kind]
     kwargs = dict(checkpoint=True) if kind == "pid" else {}
-    helpers.check_first_derivatives(lambda x: outputs(controller, SECTION, x, frozen, **kwargs), (X0,), eps=2e-7,
-                                    atol=1e-7, rtol=2e-6)
+    forward, reverse = {"fixed": (2e-8, 3e-9), "pid": (1e-8, 2e-9), "time-transform": (3e-9, 3e-10)}[kind]
+    helpers.check_first_derivatives_within(lambda x: outputs(controller, SECTION, x, frozen, **kwargs), (X0,),
+                                           eps=2e-7, forward=forward, reverse=reverse)
 
 
 TERMINAL = gj.Event(lambda t, q, p: q[1] + 0.2, direction=-1, terminal=True)
@@ -89,7 +93,8 @@ def test_a_terminal_events_time_and_state_end_the_run_and_move_with_the_inputs(k
     the inputs as the implicit function theorem on g(t*, z(t*)) = 0 says (central differences of
     the run include the moving event time). Reverse mode takes the PID run's 528 elements from
     the kept roots, the time-transformed run's 37 in stretches of sqrt(max_steps) = 10 solved
-    again from checkpoints."""
+    again from checkpoints. Measured (as in the test above, forward and reverse): PID 3.1e-10 and
+    2.0e-10, time-transformed 5.3e-11 and 4.0e-11; bounds 20x."""
     controller = {"pid": gj.PIDController(1e-13, 1e-13), "time-transform": gj.TimeTransform()}[kind]
     kwargs = dict(checkpoint=True, max_steps=100) if kind == "time-transform" else {}
 
@@ -103,17 +108,23 @@ def test_a_terminal_events_time_and_state_end_the_run_and_move_with_the_inputs(k
                        controller=controller, events=TERMINAL)
     assert int(sol.events.count) == 1 and float(sol.t[-1]) == float(sol.events.t[0]) < T1
     np.testing.assert_array_equal(sol.q[-1], sol.events.q[0])
-    helpers.check_first_derivatives(end, (X0,), eps=2e-7, atol=1e-7, rtol=2e-6)
+    forward, reverse = {"pid": (6e-9, 4e-9), "time-transform": (1e-9, 8e-10)}[kind]
+    helpers.check_first_derivatives_within(end, (X0,), eps=2e-7, forward=forward, reverse=reverse)
 
 
 def test_the_end_state_moves_with_t1_as_hamiltons_field():
     """d z(t1) / d t1 is Hamilton's field at z(t1) (to the run's accuracy), for every run kind,
-    and d z(t1) / d t0 its negative (H does not depend on t): no silent zero."""
+    and d z(t1) / d t0 its negative (H does not depend on t): no silent zero. Measured, the
+    largest entry's distance from the field (|field| = 0.89): PID 1e-12 6.5e-14, time-transformed
+    3.5e-15, fixed steps reserved 3.3e-16 (3 ulp), fixed steps with events 7.8e-15; bounds
+    (``atol``) 23x to 30x those. Reverse mode's d z(t1) / d t1 agrees with forward mode's to
+    6.4e-14 (PID) and less; bound 1e-12."""
     H0 = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
     runs = {"pid": dict(h=0.05, controller=gj.PIDController(1e-12, 1e-12)),
             "time-transform": dict(h=0.05, controller=gj.TimeTransform()),
             "fixed, reserved": dict(h=0.01, max_steps=600),
             "fixed, events": dict(h=0.01, events=gj.Event(lambda t, q, p: q[0] - 10.0))}
+    atol = {"pid": 1.5e-12, "time-transform": 1e-13, "fixed, reserved": 1e-14, "fixed, events": 2e-13}
     for name, kwargs in runs.items():
         def end(t0, t1):
             sol = gj.integrate(H0, Q0, P0, method=gj.CG(4, GAUSS), t0=t0, t1=t1, **kwargs)
@@ -122,8 +133,8 @@ def test_the_end_state_moves_with_t1_as_hamiltons_field():
         d_t0, d_t1 = jax.jacfwd(end, argnums=(0, 1))(0.0, T1)
         q, p = end(0.0, T1)[:2], end(0.0, T1)[2:]
         field = jnp.concatenate([p, -q / jnp.sqrt(q @ q) ** 3])
-        np.testing.assert_allclose(d_t1, field, rtol=0, atol=1e-7, err_msg=name)
-        np.testing.assert_allclose(d_t0, -field, rtol=0, atol=1e-7, err_msg=name)
+        np.testing.assert_allclose(d_t1, field, rtol=0, atol=atol[name], err_msg=name)
+        np.testing.assert_allclose(d_t0, -field, rtol=0, atol=atol[name], err_msg=name)
         assert np.allclose(jax.jacrev(end, argnums=1)(0.0, T1), d_t1, rtol=1e-12, atol=1e-12), name
 
 
@@ -166,9 +177,13 @@ def test_a_sweeps_gradient_from_the_kept_roots_equals_one_from_roots_found_again
     """A controller's sweep keeps each member's roots for reverse mode (its diagnostics folded
     along, ``_sweep._diagnostics``); with ``checkpoint=True`` each member's run (164 and 158
     elements) is cut into stretches of sqrt(max_steps) = 20 solved again from checkpoints. The
-    two Jacobians of the final states agree to round-off: measured 3e-15 relative (the roots
-    found again agree with the run's to round-off)."""
+    two Jacobians of the final states and of a diagnostic, the invariant error of the Runge-Lenz
+    vector's x component (not conserved under the J2 term: 0.023 and 0.021, a maximum over the
+    nodes whose derivative is that node's, entries up to 22), agree to round-off: measured 3.3e-15
+    relative (1.5e-15 in the states' rows); bound 1e-13, 30x. (The energy error, 8e-16 for
+    cG(4) + Gauss 4 at 1e-10, is round-off, and so would its derivative be: it is left out.)"""
     controller = gj.PIDController(1e-10, 1e-10)
+    lenz_x = lambda q, p: p[1] * (q[0] * p[1] - q[1] * p[0]) - q[0] / jnp.sqrt(q @ q)
 
     def run(x, checkpoint):
         q0, p0, args, _, t1, _, _, rule = unpack(x)
@@ -176,15 +191,13 @@ def test_a_sweeps_gradient_from_the_kept_roots_equals_one_from_roots_found_again
                              q0=jnp.stack([q0, 1.01 * q0]), p0=jnp.stack([p0, p0]),
                              args=jax.tree.map(lambda a: jnp.stack([a, a]), args))
         result = gj.sweep(H, configs, t1=t1, controller=controller, max_steps=400, checkpoint=checkpoint,
-                          invariants=dict(L=lambda q, p: q[0] * p[1] - q[1] * p[0]))
-        # the diagnostics (maxima over the nodes) go through the adjoint sweep's path for them, but
-        # their derivative is that of the node where the maximum falls, which round-off can move
-        diagnostics = jnp.sum(result.energy_error) + jnp.sum(result.invariant_errors["L"])
-        return jnp.concatenate([result.q.ravel(), result.p.ravel(), 0.0 * diagnostics[None]])
+                          invariants=dict(A=lenz_x))
+        return jnp.concatenate([result.q.ravel(), result.p.ravel(), result.invariant_errors["A"]])
 
     kept, again = (jax.jacrev(lambda x: run(x, checkpoint))(X0) for checkpoint in (False, True))
     assert np.all(np.isfinite(kept)) and float(jnp.max(jnp.abs(kept))) > 1.0
-    assert float(jnp.max(jnp.abs(again - kept)) / jnp.max(jnp.abs(kept))) < 1e-12
+    assert float(jnp.max(jnp.abs(kept[-2:]))) > 1.0  # the diagnostic's rows, far from round-off
+    assert float(jnp.max(jnp.abs(again - kept)) / jnp.max(jnp.abs(kept))) < 1e-13
 
 
 def test_a_vmapped_gradient_takes_each_members_own_elements_backwards(monkeypatch):

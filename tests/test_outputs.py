@@ -154,14 +154,9 @@ def test_a_run_backwards_saves_every_node():
         gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at="steps", save_every=2, **pid)
 
 
-def test_a_controller_picks_its_first_step():
-    """h=None under a PIDController: Hairer, Norsett and Wanner's starting step (as diffrax's),
-    from the field at the start and one Euler step; the run succeeds, and the step is neither
-    rejected many times over nor far below what the controller settles on."""
-    sol = gj.integrate(H, Q0, P0, method=CG4, t1=TWO_PI, controller=gj.PIDController(1e-8, 1e-8), save_at="steps")
-    assert int(sol.status) == 0 and int(sol.stats["num_rejected_steps"]) <= 3
-    first = float(sol.t[1] - sol.t[0])
-    assert 0.1 * float(sol.stats["min_step"]) < first < 10 * float(sol.stats["max_step"])
+def test_h_none_needs_a_pid_controller():
+    """h=None picks a PIDController's first step (``test_a_controller_picks_hairer_norsett_wanners_first_step``);
+    fixed steps need h."""
     with pytest.raises(ValueError, match="h=None"):
         gj.integrate(H, Q0, P0, method=CG4, t1=1.0)
 
