@@ -304,13 +304,45 @@ class Event:
         g: the event function; q and p in the state's own shape.
         direction: 0 any crossing, +1 only upward (g from < 0 to >= 0), -1 only downward.
         terminal: end the run at the first event; its time and state are the run's last.
-        capacity: the number of events stored (``Solution.events``); later ones are counted.
+        capacity: the number of events stored (``Solution.events``), an integer >= 1; later
+            ones are counted.
+
+    Raises:
+        TypeError: ``g`` not callable, ``direction`` or ``capacity`` not an integer, ``terminal``
+            not a bool.
+        ValueError: ``direction`` not -1, 0 or 1; ``capacity`` < 1.
     """
 
     g: object = dataclasses.field(metadata=dict(static=True))
     direction: int = dataclasses.field(default=0, metadata=dict(static=True))
     terminal: bool = dataclasses.field(default=False, metadata=dict(static=True))
     capacity: int = dataclasses.field(default=64, metadata=dict(static=True))
+
+    def __post_init__(self):  # static fields: the user's objects, also where JAX rebuilds the node
+        check_event_fields(self.g, self.direction, self.terminal, self.capacity)
+
+
+def _integer(x):
+    """An int or NumPy integer, not a bool."""
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+def check_event_fields(g, direction, terminal, capacity):
+    """Raise ``TypeError`` or ``ValueError``, naming the field, for an ``Event`` field of the wrong
+    kind: ``g`` callable, ``direction`` in {-1, 0, 1}, ``terminal`` a bool, ``capacity`` an
+    integer >= 1."""
+    if not callable(g):
+        raise TypeError(f"Event: g must be a callable g(t, q, p), got {type(g).__name__}.")
+    if not _integer(direction):
+        raise TypeError(f"Event: direction must be the integer -1, 0 or 1, got {direction!r}.")
+    if direction not in (-1, 0, 1):
+        raise ValueError(f"Event: direction must be -1, 0 or 1, got {direction!r}.")
+    if not isinstance(terminal, (bool, np.bool_)):
+        raise TypeError(f"Event: terminal must be a bool, got {terminal!r}.")
+    if not _integer(capacity):
+        raise TypeError(f"Event: capacity must be an integer >= 1, got {capacity!r}.")
+    if capacity < 1:
+        raise ValueError(f"Event: capacity must be an integer >= 1, got {capacity!r}.")
 
 
 @pytree_dataclass

@@ -128,12 +128,7 @@ def check_events(events, q0, p0, t0):
 def check_event(event, q0, p0, t0):
     if not isinstance(event, Event):
         raise TypeError(f"events must be a gj.Event or a list of them, got {type(event).__name__}.")
-    if not callable(event.g):
-        raise TypeError(f"Event.g must be a callable g(t, q, p), got {type(event.g).__name__}.")
-    if event.direction not in (-1, 0, 1):
-        raise ValueError(f"Event.direction must be -1, 0 or 1, got {event.direction!r}.")
-    if isinstance(event.capacity, bool) or not isinstance(event.capacity, (int, np.integer)) or event.capacity < 1:
-        raise ValueError(f"Event.capacity must be an integer >= 1, got {event.capacity!r}.")
+    # its fields were checked when it was built (``Event.__post_init__``); here g's output
     try:
         out = jax.eval_shape(event.g, jnp.asarray(t0, q0.dtype), q0, p0)
     except TypeError as error:
