@@ -53,7 +53,7 @@ class PIDController:
         icoeff: integral coefficient.
         dcoeff: derivative coefficient.
         dtmin: smallest step; a step rejected at dtmin ends the run with status DTMIN (default 0:
-            the run ends where h falls to the round-off of t).
+            the run ends where h falls to the round-off of t), unless ``force_dtmin``.
         dtmax: largest step (default inf).
         safety: factor < 1 on the predicted optimal h.
         factormin: least factor by which h changes per step.
@@ -66,6 +66,10 @@ class PIDController:
             tolerances").
         predictive: bound the factor by Gustafsson's predictive controller (above); False (with
             ``failfactor=factormin``) gives diffrax's controller. Static.
+        force_dtmin: accept a step of h <= dtmin whose error exceeds the tolerance, as diffrax's
+            ``force_dtmin=True`` does, and go on at dtmin; the status stays SUCCESS, and
+            ``error_estimate`` shows the error such steps made. A failed solve is not accepted
+            (status DTMIN there). Default False: such a step ends the run (DTMIN). Static.
 
     Raises:
         ValueError: at construction, for a concrete value out of its range (``BOUNDS``: rtol,
@@ -75,7 +79,7 @@ class PIDController:
             the shapes. The check runs where you construct the controller, not where JAX
             rebuilds it (``jax.tree.map``, ``vmap``'s axis specs, cotangents), so build axis
             specs with ``jax.tree.map``.
-        TypeError: ``predictive`` not a bool.
+        TypeError: ``predictive`` or ``force_dtmin`` not a bool.
     """
 
     rtol: float
@@ -90,10 +94,12 @@ class PIDController:
     factormax: float = 10.0
     failfactor: float = 0.5
     predictive: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    force_dtmin: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
     def _check_on_construction(self):
-        if not isinstance(self.predictive, bool):
-            raise TypeError(f"PIDController: predictive must be a bool, got {self.predictive!r}.")
+        for name in ("predictive", "force_dtmin"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"PIDController: {name} must be a bool, got {getattr(self, name)!r}.")
         check_values(concrete_values(self), "PIDController: ")
 
     def next_factor(self, err, err_prev, err_prev2, order, accepted, h_ratio):

@@ -43,7 +43,8 @@ class Solution:
             (elements accepted other than at round-off: their updates stopped shrinking with the
             residual below sqrt(eps) of the state, see ``Status``), as in diffrax
             ``num_steps`` (every attempt), ``num_accepted_steps`` (the elements of the run) and
-            ``num_rejected_steps`` (fixed steps reject none), ``min_step`` and ``max_step`` (the smallest and
+            ``num_rejected_steps`` (the attempts not accepted: num_steps is their sum with the accepted;
+            a time-transformed run's are its tries at the last element; fixed steps reject none), ``min_step`` and ``max_step`` (the smallest and
             largest accepted h; of a time-transformed run, in tau; of fixed steps h, where the
             last element to t1 may be shorter).
         error_estimate: the largest estimated local (one-element) error of the run, max-norm

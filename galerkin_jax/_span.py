@@ -61,8 +61,9 @@ def check_controller(controller, method, batch=None):
         if controller.s is not None and not callable(controller.s):
             raise TypeError(f"TimeTransform.s must be a callable s(q, p), got {type(controller.s).__name__}.")
         return
-    if not isinstance(controller.predictive, bool):
-        raise TypeError(f"controller.predictive must be a bool, got {controller.predictive!r}.")
+    for name in ("predictive", "force_dtmin"):
+        if not isinstance(getattr(controller, name), bool):
+            raise TypeError(f"controller.{name} must be a bool, got {getattr(controller, name)!r}.")
     shapes = [()] if batch is None else [(), (batch,)]
     for field in dataclasses.fields(controller):
         x = getattr(controller, field.name)
