@@ -188,10 +188,12 @@ def integrate(
         p0: of q0's shape (structure); the initial momentum for LagrangianVI too.
         method: a method object (CG, DG, GalerkinVI, ...).
         h: step size > 0 (a controller's first step; a time transformation's step in tau); may
-            be traced (vmap over step sizes).
+            be traced (vmap over step sizes). None (with a ``PIDController`` only): the first step is
+            picked by Hairer, Norsett and Wanner's starting step algorithm (Solving ODEs I, Sec. II.4),
+            as diffrax's.
         n_steps: number of elements, a multiple of ``save_every``. Static. Give it or ``t1``.
         t0: start time.
-        t1: end time, > t0.
+        t1: end time, != t0; t1 < t0 runs backwards in time (not with LagrangianVI).
         controller: None (fixed steps), ``PIDController`` or ``TimeTransform``; needs ``t1``.
         max_steps: static cap on a controller's attempts (accepted and rejected; default
             4096); with fixed steps to a traced ``t1`` or ``h``, the elements the scan reserves.
