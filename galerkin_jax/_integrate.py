@@ -197,7 +197,7 @@ def integrate(
         controller: None (fixed steps), ``PIDController`` or ``TimeTransform``; needs ``t1``.
         max_steps: static cap on a controller's attempts (accepted and rejected; default
             4096); with fixed steps to a traced ``t1`` or ``h``, the elements the scan reserves.
-        save_at: sorted times in [t0, t1] at which to save the state (from the element
+        save_at: times between t0 and t1, sorted in the run's direction, at which to save the state (from the element
             polynomials between nodes); ``Solution.t`` is then ``save_at``. ``"steps"``: every
             accepted node, in the user's shapes (a controller's run: ``max_steps + 1`` rows,
             t = inf and NaN states past the last node; ``num_accepted_steps + 1`` of them hold
@@ -269,6 +269,8 @@ def _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_a
     mapped alike), its times negated back."""
     if not method.hamiltonian:
         raise ValueError("t1 < t0 (a run backwards in time) needs a Hamiltonian method; LagrangianVI is given L.")
+    if not _span.check_nodes(save_at, save_every):  # save times in the user's time, before the flip
+        _span.check_save_at(save_at, t0, t1, q0.dtype)
     flip = lambda x: x if x is None or isinstance(x, str) else -jnp.asarray(x, q0.dtype)  # "steps" stays
     reversed_events = None if events is None else tuple(dataclasses.replace(e, g=_time_reversed_event(e.g))
                                                          for e in events)

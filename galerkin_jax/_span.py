@@ -94,7 +94,8 @@ def check_nodes(save_at, save_every):
 
 
 def check_save_at(save_at, t0, t1, dtype):
-    """``save_at`` as a 1-D array, sorted, in [t0, t1]; None stays None."""
+    """``save_at`` as a 1-D array, sorted in the run's direction (non-decreasing; non-increasing
+    in a run backwards, t1 < t0), between t0 and t1; None stays None."""
     if save_at is None:
         return None
     ts = jnp.asarray(save_at, dtype)
@@ -104,13 +105,26 @@ def check_save_at(save_at, t0, t1, dtype):
         values = np.asarray(ts)
         if not np.all(np.isfinite(values)):
             raise ValueError("save_at must hold finite times.")
-        if np.any(np.diff(values) < 0):
-            raise ValueError("save_at must be sorted (non-decreasing).")
-        if concrete(t0, t1) and (values[0] < float(t0) or values[-1] > float(t1)):
-            raise ValueError(
-                f"save_at must lie in [t0, t1] = [{float(t0)}, {float(t1)}], got [{values[0]}, {values[-1]}]."
-            )
+        backwards = concrete(t0, t1) and float(t1) < float(t0)
+        _check_order(values, backwards)
+        if concrete(t0, t1):
+            lo, hi = sorted((float(t0), float(t1)))
+            if values.min() < lo or values.max() > hi:
+                span = "[t1, t0]" if backwards else "[t0, t1]"
+                raise ValueError(f"save_at must lie in {span} = [{lo}, {hi}], got [{values.min()}, {values.max()}].")
     return ts
+
+
+def _check_order(values, backwards):
+    """Raise ``ValueError`` where the save times ``values`` (concrete) go against the run's
+    direction, naming the direction and the first pair out of order."""
+    steps = -np.diff(values) if backwards else np.diff(values)
+    if np.any(steps < 0):
+        i = int(np.argmax(steps < 0))
+        order, run = ("non-increasing", "a run backwards (t1 < t0)") if backwards else \
+            ("non-decreasing", "a run forwards (t1 > t0)")
+        raise ValueError(f"save_at must be sorted in the run's direction: {order} in {run}, got "
+                         f"{values[i]} before {values[i + 1]}.")
 
 
 def check_events(events, q0, p0, t0):

@@ -196,6 +196,27 @@ def test_a_run_backwards_saves_every_node():
         gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at="steps", save_every=2, **pid)
 
 
+def test_a_run_backwards_takes_its_save_times_in_its_direction():
+    """In a run backwards (t1 < t0) save_at runs from t0 down to t1: increasing times raise a
+    ValueError that names the direction (it said "must be sorted (non-decreasing)", of the
+    negated times), times outside [t1, t0] one in the user's time; decreasing ones are saved."""
+    pid = dict(h=0.01, controller=gj.PIDController(1e-10, 1e-10))
+    with pytest.raises(ValueError) as caught:
+        gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at=[-1.0, -0.5, 0.0], **pid)
+    assert str(caught.value) == ("save_at must be sorted in the run's direction: non-increasing in a run backwards "
+                                 "(t1 < t0), got -1.0 before -0.5.")
+    with pytest.raises(ValueError) as caught:
+        gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at=[0.0, -1.5], **pid)
+    assert str(caught.value) == "save_at must lie in [t1, t0] = [-1.0, 0.0], got [-1.5, 0.0]."
+    with pytest.raises(ValueError, match=r"non-decreasing in a run forwards \(t1 > t0\), got 0.5 before 0.2\.$"):
+        gj.integrate(H, Q0, P0, method=CG4, t1=1.0, save_at=[0.5, 0.2], **pid)
+    sol = gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at=jnp.array([0.0, -0.5, -1.0]), **pid)
+    assert int(sol.status) == 0
+    np.testing.assert_array_equal(sol.t, [0.0, -0.5, -1.0])
+    for t, q in zip((-0.5, -1.0), sol.q[1:]):
+        np.testing.assert_allclose(q, helpers.kepler_exact(t, 0.9)[0], atol=1e-8)
+
+
 def test_a_controller_picks_its_first_step():
     """h=None under a PIDController: Hairer, Norsett and Wanner's starting step (as diffrax's),
     from the field at the start and one Euler step; the run succeeds, and the step is neither
