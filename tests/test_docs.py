@@ -219,3 +219,28 @@ def test_a_page_after_another_starts_from_its_names():
     names = run(sweeps, 0).namespace
     assert {"H", "q0", "p0", "method", "result"} <= set(names)
     assert "result" not in run(after(sweeps), 0).namespace  # the earlier page keeps its own names
+
+
+def test_the_api_reference_lists_public_names_only():
+    """docs/api.md lists names by their public path, ``galerkin_jax.NAME`` with NAME in
+    ``__all__`` (Events and DenseOutput, which a Solution carries, were listed by their private
+    modules); the package exports them as the objects a run returns."""
+    import galerkin_jax as gj
+    from galerkin_jax import _controllers, _output
+
+    page = (ROOT / "docs" / "api.md").read_text()
+    assert re.findall(r"galerkin_jax\._\w+", page) == []
+    listed = re.findall(r"^::: galerkin_jax\.(\w+)\s*$", page, flags=re.MULTILINE)
+    assert sorted(set(listed) - set(gj.__all__)) == []
+    assert gj.Events is _controllers.Events and gj.DenseOutput is _output.DenseOutput
+    assert {"Events", "DenseOutput"} <= set(gj.__all__)
+
+
+def test_the_status_docstring_lists_every_code():
+    """``Status``'s docstring, which the API reference renders, gives every code with its number
+    (``NAME: N, meaning``), in order."""
+    import galerkin_jax as gj
+
+    section = gj.Status.__doc__.split("Attributes:")[1]
+    entries = re.findall(r"^ {8}(\w+): (\d+), \S", section, flags=re.MULTILINE)
+    assert [(name, int(value)) for name, value in entries] == [(s.name, s.value) for s in gj.Status]
