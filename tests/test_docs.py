@@ -244,3 +244,47 @@ def test_the_status_docstring_lists_every_code():
     section = gj.Status.__doc__.split("Attributes:")[1]
     entries = re.findall(r"^ {8}(\w+): (\d+), \S", section, flags=re.MULTILINE)
     assert [(name, int(value)) for name, value in entries] == [(s.name, s.value) for s in gj.Status]
+
+
+def _anchor_check():
+    """.ci/check_anchors.py, the check of the built site's links to anchors (run by .ci/run)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("check_anchors", ROOT / ".ci" / "check_anchors.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_anchor_check_finds_a_link_to_a_missing_heading(tmp_path):
+    """The site check reports a link whose fragment names no element of its page, on the page
+    itself or another (a notebook's table of contents linked ``#did-the-solves-converge`` where
+    the heading's id was ``status-did-the-solves-converge``), and passes links out of the site."""
+    check = _anchor_check()
+    (tmp_path / "nb").mkdir()
+    (tmp_path / "nb" / "index.html").write_text(
+        '<h2 id="status-did-the-solves-converge">status</h2><h2 id="one-run">One run</h2>'
+        '<a href="#did-the-solves-converge">toc</a><a href="#one-run">toc</a>'
+        '<a href="../#top">home</a><a href="../#gone">home</a><a href="https://example.org/#x">out</a>')
+    (tmp_path / "index.html").write_text('<a name="top"></a><a href="nb/#one-run">nb</a><a href="nb/">nb</a>')
+    assert check.broken_anchors(tmp_path) == [("nb/index.html", "#did-the-solves-converge"),
+                                               ("nb/index.html", "../#gone")]
+    assert check.main(["check_anchors.py", str(tmp_path)]) == 1
+    (tmp_path / "nb" / "index.html").write_text('<h2 id="a%20b">x</h2><a href="#a%2520b">x</a>')
+    assert check.broken_anchors(tmp_path) == [("index.html", "nb/#one-run")]
+
+
+def test_notebook_headings_hold_no_code():
+    """mkdocs-jupyter's table of contents drops the code of a heading from its link's slug,
+    while the heading's id keeps it (``## `status`: ...``: a link to ``#did-...``, the id
+    ``status-did-...``), so a notebook's headings are plain text. The built site's links are
+    checked by .ci/check_anchors.py; this catches the cause without a build."""
+    import json
+
+    coded = []
+    for path in sorted((ROOT / "notebooks").glob("*.ipynb")):
+        for cell in json.loads(path.read_text())["cells"]:
+            if cell["cell_type"] == "markdown":
+                coded += [f"{path.name}: {line}" for line in "".join(cell["source"]).splitlines()
+                          if re.match(r"#{1,6} .*`", line)]
+    assert coded == []
