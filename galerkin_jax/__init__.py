@@ -7,7 +7,13 @@ equivalence.
 
 __version__ = "0.2.0"  # the version in pyproject.toml (the docs build checks they agree)
 
-from ._controllers import Event as Event, PIDController as PIDController, TimeTransform as TimeTransform
+from ._controllers import (
+    Event as Event,
+    Events as Events,
+    PIDController as PIDController,
+    TimeTransform as TimeTransform,
+)
+from ._output import DenseOutput as DenseOutput
 from ._galerkin import CG as CG, DG as DG
 from ._method import AbstractMethod as AbstractMethod
 from ._pytree import pytree_dataclass as pytree_dataclass
@@ -50,8 +56,10 @@ __all__ = [
     "CG",
     "Configs",
     "DG",
+    "DenseOutput",
     "DiscreteGradient",
     "Event",
+    "Events",
     "Float32Warning",
     "GalerkinVI",
     "LagrangianVI",

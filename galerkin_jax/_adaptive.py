@@ -65,12 +65,16 @@ def _crossing(event, g_a, g_b):
 def _pid_rule(controller, order, tiny):
     """Error-per-step control: accept where the scaled embedded estimate is <= 1; h by the PID
     factor, clipped to [dtmin, dtmax] (as diffrax does); a step rejected at dtmin (or at the
-    round-off of t) ends the run there (DTMIN), where diffrax would accept it (``force_dtmin``):
-    a step whose error exceeds the tolerance is not passed off as a result."""
+    round-off of t) ends the run there (DTMIN): a step whose error exceeds the tolerance is not
+    passed off as a result, unless ``force_dtmin`` asks for diffrax's rule, which accepts a
+    solved step of h <= dtmin whatever its error. Every attempt not accepted counts as rejected,
+    the last one of a run ended by DTMIN included."""
 
     def rule(c, step):
         err = jnp.where(step["solved"], scaled_error(step["embedded"], step["z"], step["z1"], controller), jnp.inf)
         accept = err <= 1
+        if controller.force_dtmin:
+            accept = accept | (step["solved"] & (step["h"] <= controller.dtmin))
         # h_prev: the last accepted h
         h_ratio = jnp.where(c["steps"] > 0, step["h"] / c["h_prev"], jnp.nan) if controller.predictive else None
         h_next = jnp.clip(step["h"] * controller.next_factor(err, c["err1"], c["err2"], order, accept, h_ratio),
@@ -79,7 +83,7 @@ def _pid_rule(controller, order, tiny):
         memory = dict(err1=jnp.where(accept, err, c["err1"]), err2=jnp.where(accept, c["err1"], c["err2"]))
         return dict(accept=accept, finished=accept & step["last"], t_b=jnp.where(step["last"], step["t1"],
                     step["t"] + step["h"]), h_next=h_next, status=jnp.where(at_floor, Status.DTMIN, Status.SUCCESS),
-                    rejected=~accept & ~at_floor, memory=memory)
+                    rejected=~accept, memory=memory)
 
     return rule, dict(err1=jnp.ones((), tiny.dtype), err2=jnp.ones((), tiny.dtype))
 
@@ -119,7 +123,9 @@ def initial_step(field, z0, order, controller, span):
 
 def _transform_rule(s, clock, view, tiny):
     """The time transformation: a constant step in tau; the element that passes t1 is shortened
-    by Newton on its end time t_b(h), dt_b/dh = s(z1) (alpha beyond 1 extrapolates w)."""
+    by Newton on its end time t_b(h), dt_b/dh = s(z1) (alpha beyond 1 extrapolates w). The
+    attempts not accepted (the shortened ones before the landing, a failed one) count as
+    rejected."""
 
     def rule(c, step):
         z1, h, t1 = step["z1"], step["h"], step["t1"]
@@ -135,7 +141,7 @@ def _transform_rule(s, clock, view, tiny):
         finished = accept & (near | (t_b > t1))
         return dict(accept=accept, finished=finished, t_b=jnp.where(finished, t1, t_b),
                     h_next=jnp.where(shorten, h * (1 + (t1 - t_b) / (h * s1)), h), status=status,
-                    rejected=jnp.zeros((), bool), memory=dict(landing=landing + shorten))
+                    rejected=~accept, memory=dict(landing=landing + shorten))
 
     return rule, dict(landing=jnp.zeros((), jnp.int32))
 

@@ -53,7 +53,7 @@ class PIDController:
         icoeff: integral coefficient.
         dcoeff: derivative coefficient.
         dtmin: smallest step; a step rejected at dtmin ends the run with status DTMIN (default 0:
-            the run ends where h falls to the round-off of t).
+            the run ends where h falls to the round-off of t), unless ``force_dtmin``.
         dtmax: largest step (default inf).
         safety: factor < 1 on the predicted optimal h.
         factormin: least factor by which h changes per step.
@@ -66,6 +66,10 @@ class PIDController:
             tolerances").
         predictive: bound the factor by Gustafsson's predictive controller (above); False (with
             ``failfactor=factormin``) gives diffrax's controller. Static.
+        force_dtmin: accept a step of h <= dtmin whose error exceeds the tolerance, as diffrax's
+            ``force_dtmin=True`` does, and go on at dtmin; the status stays SUCCESS, and
+            ``error_estimate`` shows the error such steps made. A failed solve is not accepted
+            (status DTMIN there). Default False: such a step ends the run (DTMIN). Static.
 
     Raises:
         ValueError: at construction, for a concrete value out of its range (``BOUNDS``: rtol,
@@ -75,7 +79,7 @@ class PIDController:
             the shapes. The check runs where you construct the controller, not where JAX
             rebuilds it (``jax.tree.map``, ``vmap``'s axis specs, cotangents), so build axis
             specs with ``jax.tree.map``.
-        TypeError: ``predictive`` not a bool.
+        TypeError: ``predictive`` or ``force_dtmin`` not a bool.
     """
 
     rtol: float
@@ -90,10 +94,12 @@ class PIDController:
     factormax: float = 10.0
     failfactor: float = 0.5
     predictive: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    force_dtmin: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
     def _check_on_construction(self):
-        if not isinstance(self.predictive, bool):
-            raise TypeError(f"PIDController: predictive must be a bool, got {self.predictive!r}.")
+        for name in ("predictive", "force_dtmin"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"PIDController: {name} must be a bool, got {getattr(self, name)!r}.")
         check_values(concrete_values(self), "PIDController: ")
 
     def next_factor(self, err, err_prev, err_prev2, order, accepted, h_ratio):
@@ -304,13 +310,45 @@ class Event:
         g: the event function; q and p in the state's own shape.
         direction: 0 any crossing, +1 only upward (g from < 0 to >= 0), -1 only downward.
         terminal: end the run at the first event; its time and state are the run's last.
-        capacity: the number of events stored (``Solution.events``); later ones are counted.
+        capacity: the number of events stored (``Solution.events``), an integer >= 1; later
+            ones are counted.
+
+    Raises:
+        TypeError: ``g`` not callable, ``direction`` or ``capacity`` not an integer, ``terminal``
+            not a bool.
+        ValueError: ``direction`` not -1, 0 or 1; ``capacity`` < 1.
     """
 
     g: object = dataclasses.field(metadata=dict(static=True))
     direction: int = dataclasses.field(default=0, metadata=dict(static=True))
     terminal: bool = dataclasses.field(default=False, metadata=dict(static=True))
     capacity: int = dataclasses.field(default=64, metadata=dict(static=True))
+
+    def __post_init__(self):  # static fields: the user's objects, also where JAX rebuilds the node
+        check_event_fields(self.g, self.direction, self.terminal, self.capacity)
+
+
+def _integer(x):
+    """An int or NumPy integer, not a bool."""
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+def check_event_fields(g, direction, terminal, capacity):
+    """Raise ``TypeError`` or ``ValueError``, naming the field, for an ``Event`` field of the wrong
+    kind: ``g`` callable, ``direction`` in {-1, 0, 1}, ``terminal`` a bool, ``capacity`` an
+    integer >= 1."""
+    if not callable(g):
+        raise TypeError(f"Event: g must be a callable g(t, q, p), got {type(g).__name__}.")
+    if not _integer(direction):
+        raise TypeError(f"Event: direction must be the integer -1, 0 or 1, got {direction!r}.")
+    if direction not in (-1, 0, 1):
+        raise ValueError(f"Event: direction must be -1, 0 or 1, got {direction!r}.")
+    if not isinstance(terminal, (bool, np.bool_)):
+        raise TypeError(f"Event: terminal must be a bool, got {terminal!r}.")
+    if not _integer(capacity):
+        raise TypeError(f"Event: capacity must be an integer >= 1, got {capacity!r}.")
+    if capacity < 1:
+        raise ValueError(f"Event: capacity must be an integer >= 1, got {capacity!r}.")
 
 
 @pytree_dataclass

@@ -43,7 +43,8 @@ class Solution:
             (elements accepted other than at round-off: their updates stopped shrinking with the
             residual below sqrt(eps) of the state, see ``Status``), as in diffrax
             ``num_steps`` (every attempt), ``num_accepted_steps`` (the elements of the run) and
-            ``num_rejected_steps`` (fixed steps reject none), ``min_step`` and ``max_step`` (the smallest and
+            ``num_rejected_steps`` (the attempts not accepted: num_steps is their sum with the accepted;
+            a time-transformed run's are its tries at the last element; fixed steps reject none), ``min_step`` and ``max_step`` (the smallest and
             largest accepted h; of a time-transformed run, in tau; of fixed steps h, where the
             last element to t1 may be shorter).
         error_estimate: the largest estimated local (one-element) error of the run, max-norm
@@ -187,14 +188,16 @@ def integrate(
         p0: of q0's shape (structure); the initial momentum for LagrangianVI too.
         method: a method object (CG, DG, GalerkinVI, ...).
         h: step size > 0 (a controller's first step; a time transformation's step in tau); may
-            be traced (vmap over step sizes).
+            be traced (vmap over step sizes). None (with a ``PIDController`` only): the first step is
+            picked by Hairer, Norsett and Wanner's starting step algorithm (Solving ODEs I, Sec. II.4),
+            as diffrax's.
         n_steps: number of elements, a multiple of ``save_every``. Static. Give it or ``t1``.
         t0: start time.
-        t1: end time, > t0.
+        t1: end time, != t0; t1 < t0 runs backwards in time (not with LagrangianVI).
         controller: None (fixed steps), ``PIDController`` or ``TimeTransform``; needs ``t1``.
         max_steps: static cap on a controller's attempts (accepted and rejected; default
             4096); with fixed steps to a traced ``t1`` or ``h``, the elements the scan reserves.
-        save_at: sorted times in [t0, t1] at which to save the state (from the element
+        save_at: times between t0 and t1, sorted in the run's direction, at which to save the state (from the element
             polynomials between nodes); ``Solution.t`` is then ``save_at``. ``"steps"``: every
             accepted node, in the user's shapes (a controller's run: ``max_steps + 1`` rows,
             t = inf and NaN states past the last node; ``num_accepted_steps + 1`` of them hold
@@ -266,6 +269,8 @@ def _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_a
     mapped alike), its times negated back."""
     if not method.hamiltonian:
         raise ValueError("t1 < t0 (a run backwards in time) needs a Hamiltonian method; LagrangianVI is given L.")
+    if not _span.check_nodes(save_at, save_every):  # save times in the user's time, before the flip
+        _span.check_save_at(save_at, t0, t1, q0.dtype)
     flip = lambda x: x if x is None or isinstance(x, str) else -jnp.asarray(x, q0.dtype)  # "steps" stays
     reversed_events = None if events is None else tuple(dataclasses.replace(e, g=_time_reversed_event(e.g))
                                                          for e in events)

@@ -85,7 +85,23 @@ from ._solver_options import SolverOptions, solver_from
 
 
 class Status(enum.IntEnum):
-    """Codes of ``Solution.status``; the first failure of a run is kept."""
+    """Codes of ``Solution.status``; the first failure of a run is kept, and every state after it
+    is NaN (a run stopped by MAX_STEPS or DTMIN keeps its time and state where it stopped).
+    ``status_message(code)`` says what went wrong and what to try.
+
+    Attributes:
+        SUCCESS: 0, every implicit solve converged to round-off (or to
+            ``SolverOptions.tolerance``, where set); this says nothing about accuracy:
+            ``error_estimate`` does.
+        NEWTON_MAX_ITERATIONS: 1, an iteration hit ``max_newton_iterations`` (the element
+            equations may have no real solution).
+        NONFINITE: 2, NaN or inf in the element unknowns.
+        INVALID_INPUT: 3, a traced ``h <= 0`` or a non-finite initial state.
+        MAX_STEPS: 4, a controller's run used ``max_steps`` attempts before ``t1`` (fixed steps:
+            ``t1`` lies beyond the ``max_steps`` elements reserved).
+        DTMIN: 5, a step was rejected at ``dtmin`` (or at the round-off of t).
+        TIME_TRANSFORM: 6, the time transformation's ``s(q, p)`` was not positive and finite.
+    """
 
     SUCCESS = 0
     NEWTON_MAX_ITERATIONS = 1

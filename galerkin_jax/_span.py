@@ -80,8 +80,9 @@ def check_controller(controller, method, batch=None):
         if controller.s is not None and not callable(controller.s):
             raise TypeError(f"TimeTransform.s must be a callable s(q, p), got {type(controller.s).__name__}.")
         return
-    if not isinstance(controller.predictive, bool):
-        raise TypeError(f"controller.predictive must be a bool, got {controller.predictive!r}.")
+    for name in ("predictive", "force_dtmin"):
+        if not isinstance(getattr(controller, name), bool):
+            raise TypeError(f"controller.{name} must be a bool, got {getattr(controller, name)!r}.")
     shapes = [()] if batch is None else [(), (batch,)]
     for field in dataclasses.fields(controller):
         x = getattr(controller, field.name)
@@ -112,7 +113,8 @@ def check_nodes(save_at, save_every):
 
 
 def check_save_at(save_at, t0, t1, dtype):
-    """``save_at`` as a 1-D array, sorted, in [t0, t1]; None stays None."""
+    """``save_at`` as a 1-D array, sorted in the run's direction (non-decreasing; non-increasing
+    in a run backwards, t1 < t0), between t0 and t1; None stays None."""
     if save_at is None:
         return None
     ts = jnp.asarray(save_at, dtype)
@@ -122,13 +124,26 @@ def check_save_at(save_at, t0, t1, dtype):
         values = np.asarray(ts)
         if not np.all(np.isfinite(values)):
             raise ValueError("save_at must hold finite times.")
-        if np.any(np.diff(values) < 0):
-            raise ValueError("save_at must be sorted (non-decreasing).")
-        if concrete(t0, t1) and (values[0] < float(t0) or values[-1] > float(t1)):
-            raise ValueError(
-                f"save_at must lie in [t0, t1] = [{float(t0)}, {float(t1)}], got [{values[0]}, {values[-1]}]."
-            )
+        backwards = concrete(t0, t1) and float(t1) < float(t0)
+        _check_order(values, backwards)
+        if concrete(t0, t1):
+            lo, hi = sorted((float(t0), float(t1)))
+            if values.min() < lo or values.max() > hi:
+                span = "[t1, t0]" if backwards else "[t0, t1]"
+                raise ValueError(f"save_at must lie in {span} = [{lo}, {hi}], got [{values.min()}, {values.max()}].")
     return ts
+
+
+def _check_order(values, backwards):
+    """Raise ``ValueError`` where the save times ``values`` (concrete) go against the run's
+    direction, naming the direction and the first pair out of order."""
+    steps = -np.diff(values) if backwards else np.diff(values)
+    if np.any(steps < 0):
+        i = int(np.argmax(steps < 0))
+        order, run = ("non-increasing", "a run backwards (t1 < t0)") if backwards else \
+            ("non-decreasing", "a run forwards (t1 > t0)")
+        raise ValueError(f"save_at must be sorted in the run's direction: {order} in {run}, got "
+                         f"{values[i]} before {values[i + 1]}.")
 
 
 def check_events(events, q0, p0, t0):
@@ -147,12 +162,7 @@ def check_events(events, q0, p0, t0):
 def check_event(event, q0, p0, t0):
     if not isinstance(event, Event):
         raise TypeError(f"events must be a gj.Event or a list of them, got {type(event).__name__}.")
-    if not callable(event.g):
-        raise TypeError(f"Event.g must be a callable g(t, q, p), got {type(event.g).__name__}.")
-    if event.direction not in (-1, 0, 1):
-        raise ValueError(f"Event.direction must be -1, 0 or 1, got {event.direction!r}.")
-    if isinstance(event.capacity, bool) or not isinstance(event.capacity, (int, np.integer)) or event.capacity < 1:
-        raise ValueError(f"Event.capacity must be an integer >= 1, got {event.capacity!r}.")
+    # its fields were checked when it was built (``Event.__post_init__``); here g's output
     try:
         out = jax.eval_shape(event.g, jnp.asarray(t0, q0.dtype), q0, p0)
     except TypeError as error:

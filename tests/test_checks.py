@@ -251,6 +251,31 @@ def test_an_event_function_of_a_vector_names_itself_and_the_shape():
         gj.integrate(H, Q0, P0, method=CG1, h=0.1, t1=1.0, events=gj.Event(lambda t, q, p: (q[0], p[0])))
 
 
+@pytest.mark.parametrize(
+    "fields, error, message",
+    [
+        (dict(terminal="yes"), TypeError, "Event: terminal must be a bool, got 'yes'."),
+        (dict(terminal=1), TypeError, "Event: terminal must be a bool, got 1."),
+        (dict(direction=2), ValueError, "Event: direction must be -1, 0 or 1, got 2."),
+        (dict(direction="up"), TypeError, "Event: direction must be the integer -1, 0 or 1, got 'up'."),
+        (dict(direction=True), TypeError, "Event: direction must be the integer -1, 0 or 1, got True."),
+        (dict(capacity=0), ValueError, "Event: capacity must be an integer >= 1, got 0."),
+        (dict(capacity=2.0), TypeError, "Event: capacity must be an integer >= 1, got 2.0."),
+        (dict(g=1.0), TypeError, "Event: g must be a callable g(t, q, p), got float."),
+    ],
+)
+def test_an_event_checks_its_fields_where_it_is_built(fields, error, message):
+    """A field of the wrong kind raises at ``gj.Event(...)``, naming the field (terminal="yes"
+    used to raise ``bad operand type for unary ~`` inside the traced run, terminal=1 to run as if
+    terminal were -2)."""
+    fields = dict(dict(g=lambda t, q, p: q[0]), **fields)
+    with pytest.raises(error) as caught:
+        gj.Event(**fields)
+    assert str(caught.value) == message
+    good = gj.Event(lambda t, q, p: q[0], direction=np.int64(-1), terminal=np.bool_(True), capacity=np.int32(3))
+    assert (good.direction, good.terminal, good.capacity) == (-1, True, 3)
+
+
 def test_the_time_transform_status_advises_the_default_s_and_a_users_s_apart():
     message = gj.status_message(gj.Status.TIME_TRANSFORM)
     default, own = message.split(". ")[1:3]

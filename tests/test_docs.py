@@ -219,3 +219,72 @@ def test_a_page_after_another_starts_from_its_names():
     names = run(sweeps, 0).namespace
     assert {"H", "q0", "p0", "method", "result"} <= set(names)
     assert "result" not in run(after(sweeps), 0).namespace  # the earlier page keeps its own names
+
+
+def test_the_api_reference_lists_public_names_only():
+    """docs/api.md lists names by their public path, ``galerkin_jax.NAME`` with NAME in
+    ``__all__`` (Events and DenseOutput, which a Solution carries, were listed by their private
+    modules); the package exports them as the objects a run returns."""
+    import galerkin_jax as gj
+    from galerkin_jax import _controllers, _output
+
+    page = (ROOT / "docs" / "api.md").read_text()
+    assert re.findall(r"galerkin_jax\._\w+", page) == []
+    listed = re.findall(r"^::: galerkin_jax\.(\w+)\s*$", page, flags=re.MULTILINE)
+    assert sorted(set(listed) - set(gj.__all__)) == []
+    assert gj.Events is _controllers.Events and gj.DenseOutput is _output.DenseOutput
+    assert {"Events", "DenseOutput"} <= set(gj.__all__)
+
+
+def test_the_status_docstring_lists_every_code():
+    """``Status``'s docstring, which the API reference renders, gives every code with its number
+    (``NAME: N, meaning``), in order."""
+    import galerkin_jax as gj
+
+    section = gj.Status.__doc__.split("Attributes:")[1]
+    entries = re.findall(r"^ {8}(\w+): (\d+), \S", section, flags=re.MULTILINE)
+    assert [(name, int(value)) for name, value in entries] == [(s.name, s.value) for s in gj.Status]
+
+
+def _anchor_check():
+    """.ci/check_anchors.py, the check of the built site's links to anchors (run by .ci/run)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("check_anchors", ROOT / ".ci" / "check_anchors.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_anchor_check_finds_a_link_to_a_missing_heading(tmp_path):
+    """The site check reports a link whose fragment names no element of its page, on the page
+    itself or another (a notebook's table of contents linked ``#did-the-solves-converge`` where
+    the heading's id was ``status-did-the-solves-converge``), and passes links out of the site."""
+    check = _anchor_check()
+    (tmp_path / "nb").mkdir()
+    (tmp_path / "nb" / "index.html").write_text(
+        '<h2 id="status-did-the-solves-converge">status</h2><h2 id="one-run">One run</h2>'
+        '<a href="#did-the-solves-converge">toc</a><a href="#one-run">toc</a>'
+        '<a href="../#top">home</a><a href="../#gone">home</a><a href="https://example.org/#x">out</a>')
+    (tmp_path / "index.html").write_text('<a name="top"></a><a href="nb/#one-run">nb</a><a href="nb/">nb</a>')
+    assert check.broken_anchors(tmp_path) == [("nb/index.html", "#did-the-solves-converge"),
+                                               ("nb/index.html", "../#gone")]
+    assert check.main(["check_anchors.py", str(tmp_path)]) == 1
+    (tmp_path / "nb" / "index.html").write_text('<h2 id="a%20b">x</h2><a href="#a%2520b">x</a>')
+    assert check.broken_anchors(tmp_path) == [("index.html", "nb/#one-run")]
+
+
+def test_notebook_headings_hold_no_code():
+    """mkdocs-jupyter's table of contents drops the code of a heading from its link's slug,
+    while the heading's id keeps it (``## `status`: ...``: a link to ``#did-...``, the id
+    ``status-did-...``), so a notebook's headings are plain text. The built site's links are
+    checked by .ci/check_anchors.py; this catches the cause without a build."""
+    import json
+
+    coded = []
+    for path in sorted((ROOT / "notebooks").glob("*.ipynb")):
+        for cell in json.loads(path.read_text())["cells"]:
+            if cell["cell_type"] == "markdown":
+                coded += [f"{path.name}: {line}" for line in "".join(cell["source"]).splitlines()
+                          if re.match(r"#{1,6} .*`", line)]
+    assert coded == []

@@ -1,6 +1,8 @@
 """What a run gives back: save times, node states, events, the stop of a run short of t1, runs
 backwards, the first step a controller picks, and diffrax's counts and bounds."""
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -101,6 +103,46 @@ def test_diffrax_counts_and_the_step_bounds():
     assert int(sol.status) == gj.Status.DTMIN and np.isfinite(sol.q[-1]).all()
 
 
+def counts(sol):
+    """The step counts of ``sol.stats``, as ints."""
+    return {k: int(sol.stats[k]) for k in ("num_steps", "num_accepted_steps", "num_rejected_steps")}
+
+
+def test_every_attempt_is_accepted_or_rejected():
+    """num_steps = num_accepted_steps + num_rejected_steps in every controlled run: one ended by
+    dtmin (its last attempt, rejected at dtmin, used to count in num_steps alone: 2, 0, 1) and
+    a time-transformed one (its tries at the last element, shortened to land on t1, are the
+    rejected attempts)."""
+    floor = gj.integrate(H, Q0, P0, method=CG4, h=0.1, t1=TWO_PI, controller=gj.PIDController(1e-10, 1e-10, dtmin=0.05))
+    assert int(floor.status) == gj.Status.DTMIN
+    assert counts(floor) == dict(num_steps=2, num_accepted_steps=0, num_rejected_steps=2)
+    landed = gj.integrate(H, Q0, P0, method=CG4, h=0.05, t1=TWO_PI, controller=gj.TimeTransform())
+    n = counts(landed)
+    assert int(landed.status) == 0 and n["num_rejected_steps"] >= 1
+    assert n["num_steps"] == n["num_accepted_steps"] + n["num_rejected_steps"]
+
+
+def test_force_dtmin_accepts_the_steps_at_dtmin_and_goes_on():
+    """``PIDController(force_dtmin=True)`` (diffrax's rule): a step of h = dtmin whose error
+    exceeds the tolerance is accepted, so a run that ends with DTMIN by default (Kepler e = 0.5,
+    tolerance 1e-12, dtmin 0.05: at its first step) reaches t1 with status 0, every step but the
+    last (shortened to land on t1) at dtmin, each counted in num_accepted_steps."""
+    H5, q0, p0 = helpers.kepler(0.5)
+    run = lambda force: gj.integrate(H5, q0, p0, method=CG4, h=0.1, t1=TWO_PI, save_at="steps",
+                                     controller=gj.PIDController(1e-12, 1e-12, dtmin=0.05, force_dtmin=force))
+    strict, forced = run(False), run(True)
+    assert int(strict.status) == gj.Status.DTMIN
+    assert counts(strict) == dict(num_steps=2, num_accepted_steps=0, num_rejected_steps=2)
+    n = counts(forced)
+    assert int(forced.status) == 0 and float(forced.t[n["num_accepted_steps"]]) == TWO_PI
+    assert n["num_steps"] == n["num_accepted_steps"] + n["num_rejected_steps"]
+    steps = np.diff(np.asarray(forced.t[: n["num_accepted_steps"] + 1]))
+    assert n["num_accepted_steps"] == math.ceil(TWO_PI / 0.05) == steps.size
+    np.testing.assert_allclose(steps[:-1], 0.05, rtol=1e-12)
+    with pytest.raises(TypeError, match=r"PIDController: force_dtmin must be a bool, got 1\.$"):
+        gj.PIDController(1e-6, 1e-6, force_dtmin=1)
+
+
 def test_save_at_steps_gives_every_node_in_the_users_shapes():
     """``save_at="steps"``: the accepted nodes (the dense output's), t = inf and NaN states past
     them; a time-transformed run's in the user's (q, p), without its clock and p_t; fixed steps
@@ -152,6 +194,27 @@ def test_a_run_backwards_saves_every_node():
     np.testing.assert_array_equal(sol.q[n], end.q[-1])
     with pytest.raises(ValueError, match="save_every"):
         gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at="steps", save_every=2, **pid)
+
+
+def test_a_run_backwards_takes_its_save_times_in_its_direction():
+    """In a run backwards (t1 < t0) save_at runs from t0 down to t1: increasing times raise a
+    ValueError that names the direction (it said "must be sorted (non-decreasing)", of the
+    negated times), times outside [t1, t0] one in the user's time; decreasing ones are saved."""
+    pid = dict(h=0.01, controller=gj.PIDController(1e-10, 1e-10))
+    with pytest.raises(ValueError) as caught:
+        gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at=[-1.0, -0.5, 0.0], **pid)
+    assert str(caught.value) == ("save_at must be sorted in the run's direction: non-increasing in a run backwards "
+                                 "(t1 < t0), got -1.0 before -0.5.")
+    with pytest.raises(ValueError) as caught:
+        gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at=[0.0, -1.5], **pid)
+    assert str(caught.value) == "save_at must lie in [t1, t0] = [-1.0, 0.0], got [-1.5, 0.0]."
+    with pytest.raises(ValueError, match=r"non-decreasing in a run forwards \(t1 > t0\), got 0.5 before 0.2\.$"):
+        gj.integrate(H, Q0, P0, method=CG4, t1=1.0, save_at=[0.5, 0.2], **pid)
+    sol = gj.integrate(H, Q0, P0, method=CG4, t1=-1.0, save_at=jnp.array([0.0, -0.5, -1.0]), **pid)
+    assert int(sol.status) == 0
+    np.testing.assert_array_equal(sol.t, [0.0, -0.5, -1.0])
+    for t, q in zip((-0.5, -1.0), sol.q[1:]):
+        np.testing.assert_allclose(q, helpers.kepler_exact(t, 0.9)[0], atol=1e-8)
 
 
 def test_h_none_needs_a_pid_controller():
