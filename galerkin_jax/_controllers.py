@@ -308,7 +308,8 @@ class Event:
 
     Args:
         g: the event function; q and p in the state's own shape.
-        direction: 0 any crossing, +1 only upward (g from < 0 to >= 0), -1 only downward.
+        direction: 0 any crossing, +1 only upward (g from < 0 to >= 0), -1 only downward, in the
+            run's order: in a run backwards (t1 < t0) upward as t decreases.
         terminal: end the run at the first event; its time and state are the run's last.
         capacity: the number of events stored (``Solution.events``), an integer >= 1; later
             ones are counted.

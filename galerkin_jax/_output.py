@@ -19,8 +19,9 @@ from ._pytree import pytree_dataclass
 
 
 def refined(method, H_bound, z0, z1, W, h):
-    """The element polynomial ``W`` refined to the nodes' accuracy between them
-    (``_interpolate.refine`` at local order 2m - 1, m = W's coefficients: cG(k)'s 2k + 1), for
+    """The element polynomial ``W`` refined between the nodes (``_interpolate.refine`` at local
+    order 2m - 1, m = W's coefficients: cG(k)'s 2k + 1, the nodes' own; one below the nodes'
+    for dG(k) and GalerkinVI), for
     save times, events and dense output; a method given a Lagrangian: ``W`` as it is, padded to
     the same shape. Returns ``(2m - 1, 2d)`` coefficients of the same form as W's."""
     if not method.hamiltonian:
