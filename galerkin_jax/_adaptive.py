@@ -318,8 +318,10 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     c = _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, events, gs, observe, acc0,
                        estimate, every)
     c.update(memory)
-    # a run backwards arrives flipped (``_integrate``); a traced t1 < t0 that was not is bad input
-    c["status"] = jnp.where(t1 > t0, c["status"], Status.INVALID_INPUT).astype(jnp.int32)
+    # a run backwards arrives flipped (``_integrate``): a traced t1 < t0 that was not is bad input,
+    # and so is a traced save time outside [t0, t1] (concrete ones raise before)
+    valid = (t1 > t0) if ts is None else (t1 > t0) & jnp.all((ts >= t0) & (ts <= t1))
+    c["status"] = jnp.where(valid, c["status"], Status.INVALID_INPUT).astype(jnp.int32)
     if s is not None:
         s0 = s(*view(z0))
         c["status"] = jnp.where((s0 > 0) & jnp.isfinite(s0), c["status"], Status.TIME_TRANSFORM).astype(jnp.int32)

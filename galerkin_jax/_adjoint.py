@@ -13,7 +13,11 @@ took, whatever ``max_steps``:
 * forward (``jax.jvp``, ``_tangent_sweep``): element after element, each element's tangent by
   ``jax.jvp`` at its root, found again from z_n;
 * reverse (``jax.grad``, ``jax.vjp``, ``_adjoint_sweep``): backwards, each element by
-  ``jax.vjp``. The forward run keeps z, t (and a sweep's diagnostics) at every ``every``-th
+  ``jax.vjp``.
+
+Neither sweep writes an output's derivative by hand: each output is defined once, as a
+function of the element that writes it (``_kinds``), and the sweeps take its ``jax.jvp`` and
+its ``jax.vjp`` (``_write_tangents``, ``_read_cotangents``). The forward run keeps z, t (and a sweep's diagnostics) at every ``every``-th
   node (checkpoints) and the roots of the elements since the last one (``Spec.stretch``:
   ``KEPT_ELEMENTS``, sqrt(max_steps) with ``checkpoint``); the adjoint takes that last
   stretch backwards from the kept roots, then each earlier stretch after solving it again
@@ -27,7 +31,7 @@ before it; the element that lands on t1 is t1 - t_n long, so t0, t1 and a consta
 derivatives, a controller's steps none. A time-transformed run's time is a coordinate of its
 state, and its last element's length in tau is fixed by landing on t1 (``_landing``). A save
 time's place alpha in its element, and an event's, move with the inputs as the implicit
-function theorem says (``_root``). A derivative that is not defined raises (``_tangents``);
+function theorem says (``_output.root``). A derivative that is not defined raises (``_tangents``);
 second derivatives of such a run raise too (``_first_order``).
 """
 

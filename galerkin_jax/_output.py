@@ -54,15 +54,17 @@ def time_at(z0, W, alpha, t0, h, clock):
 
 def state_at(z0, W, z1, alpha, node):
     """The state at ``alpha`` of one element: w(alpha), or at a node (``node`` -1 its start, +1
-    its end) the node's state, which a discontinuous w need not reach, plus w's change from
-    there (zero at the node itself, exactly): so a state at a node has w's slope in alpha. The
+    its end) the node's state, which a discontinuous w need not reach, exactly, with the
+    tangent of w's change from there: so a state at a node has w's slope in alpha. The
     one definition of a state between nodes that ``save_at``, ``Solution.evaluate`` and their
     derivatives read."""
-    w = lambda a: on_polynomial(z0, W, jnp.reshape(a, (1,)).astype(W.dtype))[0]
-    value = w(alpha)
-    at_start = z0 + (value - w(jnp.zeros_like(alpha)))
-    at_end = z1 + (value - w(jnp.ones_like(alpha)))
-    return jnp.where(node < 0, at_start, jnp.where(node > 0, at_end, value))
+    P = lambda a: _basis.legendre_values(jnp.reshape(a, (1,)).astype(W.dtype), W.shape[0])[0]
+    here = P(alpha)
+    # w's change from the node, zero in value (the node's state exactly) with its tangent
+    change = lambda end: (lambda x: x - jax.lax.stop_gradient(x))(_basis.combine(here - P(end), W))
+    at_start = z0 + change(jnp.zeros_like(alpha))
+    at_end = z1 + change(jnp.ones_like(alpha))
+    return jnp.where(node < 0, at_start, jnp.where(node > 0, at_end, z0 + _basis.combine(here, W)))
 
 
 def truncated(W, beta):
@@ -120,15 +122,17 @@ def locate(f, lo, hi, f_lo, iterations=48):
     return jnp.clip(x, lo, hi)
 
 
-def alpha_at_time(z0, W, t, t0, h, clock):
-    """alpha in [0, 1] with time(alpha) = t on one element (``t`` between its ends),
-    differentiable in t and the element (a time-transformed run's by the implicit function
-    theorem, ``root``)."""
+def alpha_at_time(z0, W, t, t0, h, clock, node=0):
+    """alpha in [0, 1] with time(alpha) = t on one element (``t`` between its ends; ``node`` -1
+    or +1: t is its start or its end, alpha 0 or 1, where w's time may miss the node's by
+    round-off), differentiable in t and the element (a time-transformed run's by the implicit
+    function theorem, ``root``)."""
     if clock is None:
         return _unit((t - t0) / h)
     f = lambda a, z0, W, t: time_at(z0, W, a, t0, h, clock) - t
-    zero = jnp.zeros((), W.dtype)
-    located = locate(lambda a: f(a, z0, W, t), zero, jnp.ones((), W.dtype), f(zero, z0, W, t), iterations=24)
+    zero, one = jnp.zeros((), W.dtype), jnp.ones((), W.dtype)
+    located = locate(lambda a: f(a, z0, W, t), zero, one, f(zero, z0, W, t), iterations=24)
+    located = jnp.where(node < 0, zero, jnp.where(node > 0, one, located))
     return root(f, jax.lax.stop_gradient(located), (z0, W, t))
 
 
@@ -219,8 +223,8 @@ def evaluate(dense, t):
 
     def one(t, n):
         z0, W, t_a, t_b = dense.z[n], dense.W[n], dense.t[n], dense.t[n + 1]
-        alpha = alpha_at_time(z0, W, t, t_a, t_b - t_a, clock)
         node = jnp.where(t == t_a, -1, jnp.where(t == t_b, 1, 0))
+        alpha = alpha_at_time(z0, W, t, t_a, t_b - t_a, clock, node)
         return state_at(z0, W, dense.z[n + 1], alpha, node)
 
     values = jax.vmap(one)(t, n)

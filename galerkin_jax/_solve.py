@@ -96,8 +96,9 @@ class Status(enum.IntEnum):
         NEWTON_MAX_ITERATIONS: 1, an iteration hit ``max_newton_iterations`` (the element
             equations may have no real solution).
         NONFINITE: 2, NaN or inf in the element unknowns.
-        INVALID_INPUT: 3, a traced ``h <= 0``, a non-finite initial state, or a traced t1 < t0 under ``jit`` or
-            ``vmap`` (a run backwards needs t0 and t1 whose order is known when it is traced).
+        INVALID_INPUT: 3, a traced ``h <= 0``, a non-finite initial state, a traced save time outside
+            [t0, t1], or a traced t1 < t0 under ``jit`` or ``vmap`` (a run backwards needs t0 and t1
+            whose order is known when it is traced).
         MAX_STEPS: 4, a controller's run used ``max_steps`` attempts before ``t1`` (fixed steps:
             ``t1`` lies beyond the ``max_steps`` elements reserved).
         DTMIN: 5, a step was rejected at ``dtmin`` (or at the round-off of t).

@@ -91,6 +91,18 @@ def test_a_run_backwards_with_traced_times():
         assert int(sol.status) == gj.Status.INVALID_INPUT and np.isnan(float(sol.q[-1, 0])), name
 
 
+def test_a_traced_save_time_outside_the_span_is_invalid_input():
+    """Under ``jit`` a save time beyond t1 (or before t0) is INVALID_INPUT, not a NaN save with
+    status 0 (concrete ones raise a ValueError before anything runs). Found by the harness
+    below."""
+    run = jax.jit(lambda ts: gj.integrate(OSC, jnp.array([1.0]), jnp.array([0.0]), method=CG3, h=0.1, t1=1.0,
+                                          save_at=ts))
+    assert int(run(jnp.array([0.5, 1.0])).status) == 0
+    for ts in ([0.5, 1.0 + 1e-9], [-1e-9, 0.5]):
+        sol = run(jnp.array(ts))
+        assert int(sol.status) == gj.Status.INVALID_INPUT and np.all(np.isnan(np.asarray(sol.q))), ts
+
+
 def test_an_event_root_beside_a_sample_point():
     """cG(2) at h = 0.4 on the oscillator, g = q - cos(tau): the element [0.8, 1.2] is sampled at
     1.075 and 1.1; a root tau = 1.0746 or 1.0749 lies on the other side of 1.075 on the element's
@@ -206,7 +218,7 @@ def setup(case):
                   transform=dict(h=0.1, controller=gj.TimeTransform()))[case["kind"]]
 
     def run(t0, t1, scale):
-        save_at = None if not offsets else t0 + sign * jnp.asarray(offsets)
+        save_at = None if not offsets else t0 + (t1 - t0) * (jnp.asarray(offsets) / SPAN)
         return gj.integrate(H, q0 * scale, p0 * scale, method=CG3, t0=t0, t1=t1, save_at=save_at, events=events,
                             dense=case["dense"], **kwargs)
 
@@ -243,7 +255,7 @@ def test_harness_combinations_against_exact_solutions_and_both_modes(case):
             end = hit if terminal else t1
         if offsets:
             for k, off in enumerate(offsets):
-                t = t0 + sign * off
+                t = t0 + (t1 - t0) * (off / SPAN)
                 value = np.concatenate([sol.q[member, k], sol.p[member, k]])
                 if terminal and sign * (t - end) > 1e-12:
                     assert np.all(np.isnan(value)), case
