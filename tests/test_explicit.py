@@ -121,7 +121,7 @@ def test_explicit_verlet_has_order_2_and_is_symplectic():
 
 def test_explicit_verlet_energy_stays_bounded():
     """Pendulum, h = 0.1, 20000 steps: the energy error oscillates at O(h^2) (measured max
-    1.2e-3 in both halves of the run) without drift; a drift of the first half's size would
+    1.47e-3 in both halves of the run, equal to 1e-7) without drift; a drift of the first half's size would
     double it."""
     H, q0, p0 = helpers.pendulum()
     sol = gj.integrate(H, q0, p0, method=VERLET, h=0.1, n_steps=20000, save_every=10, error_estimate=False)
