@@ -14,6 +14,8 @@ from ._controllers import (
     TimeTransform as TimeTransform,
 )
 from ._output import DenseOutput as DenseOutput
+from ._composition import Composition as Composition
+from ._structure import Structure as Structure, structure as structure
 from ._galerkin import CG as CG, DG as DG
 from ._method import AbstractMethod as AbstractMethod
 from ._pytree import pytree_dataclass as pytree_dataclass
@@ -54,6 +56,7 @@ from ._quadrature import (
 __all__ = [
     "AbstractMethod",
     "CG",
+    "Composition",
     "Configs",
     "DG",
     "DenseOutput",
@@ -70,6 +73,7 @@ __all__ = [
     "SolverError",
     "SolverOptions",
     "Status",
+    "Structure",
     "SweepResult",
     "TimeTransform",
     "amplification_matrix",
@@ -88,6 +92,7 @@ __all__ = [
     "status_message",
     "suggest_step_size",
     "step",
+    "structure",
     "sweep",
     "trapezoid",
     "tune_rule",

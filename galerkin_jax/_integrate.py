@@ -8,6 +8,7 @@ import jax.numpy as jnp
 
 from . import _adjoint, _checks, _output, _shape, _span
 from ._controllers import Event, Events, PIDController, TimeTransform
+from ._explicit import explicit_form
 
 from ._march import (bind_args, input_status, march, nan_if_failed, reserved_to_t1, short_of_t1, solve_element,
                      solver_options)
@@ -133,6 +134,7 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=None, krylov=No
     """
     q, p, h = prepare(H, q, p, method, h, args)
     options = solver_options(method, max_newton_iterations, krylov, solver)
+    method = explicit_form(method, H, q, p, args, options.solver)
     q1, p1, status = _step(H, q, p, method, h, args, options)
     if throw:
         throw_if_failed(status)
@@ -245,6 +247,7 @@ def integrate(
         raise ValueError("h=None picks the first step of a PIDController's run; fixed steps and a TimeTransform "
                          "need h.")
     options = solver_options(method, max_newton_iterations, krylov, solver)
+    method = explicit_form(method, H, q0, p0, args, options.solver)
     estimate = _span.check_estimate(error_estimate)
     flags = (checkpoint, bool(dense), bool(progress), estimate)
     single = isinstance(events, Event)
@@ -443,6 +446,7 @@ def amplification_matrix(H, q, p, *, method, h, args=None, solver=None) -> jax.A
     q, p, h = prepare(H, q, p, method, h, args)
     d = q.shape[0]
     options = solver_options(method, solver=solver)
+    method = explicit_form(method, H, q, p, args, options.solver)
 
     def one_step(z):
         q1, p1, status = _step(H, z[:d], z[d:], method, h, args, options)

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 from . import _output, _progress
 from ._controllers import embedded_error
+from ._explicit import is_explicit
 from ._solve import Options, SolverOptions, Status, initial_matrix, solve, solver_from
 
 
@@ -95,6 +96,12 @@ def short_of_t1(status, t_end, t1):
 
 def solve_element(method, H, q, p, h, args, options):
     """One element from the constant predictor, without history: ``(q1, p1, Z, iterations, status)``."""
+    if is_explicit(method):
+        H_bound = bind_args(H, args)
+        Z, (dq, dp), _ = method.explicit(H_bound, q, p, h, method.explicit_start(H_bound, q, p))
+        q1, p1 = q + dq, p + dp
+        ok = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
+        return q1, p1, Z, jnp.int32(0), jnp.where(ok, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32)
     fn, params = element_residual(H, options.solver.sweep_dimension), (method, q, p, h, args)
     guess = method.initial_guess(q, p)
     matrix = initial_matrix(guess, options)
@@ -237,6 +244,9 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
                  estimate=jnp.zeros((), z0.dtype), acc=acc0)
     if estimate is True:
         carry["peak"] = peak_start(q0, p0, guess, h)
+    explicit = is_explicit(method)
+    if explicit:
+        carry["memo"] = method.explicit_start(H_bound, q0, p0)
     total = n_blocks * block_size
 
     def element(c):
@@ -245,12 +255,17 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         last = total - 1 if n_active is None else n_active - 1
         h_el = h if h_last is None else jnp.where(c["done"] == last, h_last, h)
         idle = jnp.zeros((), bool) if n_active is None else c["done"] >= n_active
-        previous = (*split(c["z_prev"]), c["Z_prev"])
-        Z_pred, continued, constant = predictor(method, q, p, previous, c["correction"])
-        Z, matrix, iterations, status, trips, lenient = solve(
-            fn, (method, q, p, h_el, args), Z_pred, constant, c["matrix"], c["scale"], failed | idle, c["done"] == 0,
-            options)
-        z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h_el)), c["comp"])
+        if explicit:  # closed form (``_explicit``): no predictor, no iteration, the force carried
+            Z, dz, memo = method.explicit(H_bound, q, p, h_el, c["memo"])
+            matrix, status, iterations, trips, lenient = c["matrix"], jnp.int32(Status.SUCCESS), 0, 0, 0
+        else:
+            previous = (*split(c["z_prev"]), c["Z_prev"])
+            Z_pred, continued, constant = predictor(method, q, p, previous, c["correction"])
+            Z, matrix, iterations, status, trips, lenient = solve(
+                fn, (method, q, p, h_el, args), Z_pred, constant, c["matrix"], c["scale"], failed | idle,
+                c["done"] == 0, options)
+            dz = method.increment(H_bound, q, p, Z, h_el)
+        z1, comp = compensated_add(z, jnp.concatenate(dz), c["comp"])
         scale = state_scale(z1)  # the next element's (NaN or inf where z1 is not finite)
         # an estimate, not a function to differentiate (and no 0 * inf from a failed run's)
         frozen = jax.lax.stop_gradient((q, p, Z, h_el, args))
@@ -260,7 +275,8 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         status = jnp.where(failed, counters[_AT["status"]], status)  # the first failure is kept
         ok = status == Status.SUCCESS
         now = jax.tree.map(lambda a, b: jnp.where(ok, b, a), start, dict(z=z1, z_prev=z, Z_prev=Z, scale=scale))
-        misses, correction = miss_correction(c["misses"], Z - continued, c["done"], solver.miss_orders)
+        misses, correction = (c["misses"], c["correction"]) if explicit else miss_correction(
+            c["misses"], Z - continued, c["done"], solver.miss_orders)
         acc = c["acc"] if observe is None else observe(c["acc"], *split(now["z"]))
         counters = jnp.stack([status, counters[_AT["total"]] + iterations,
                               jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips,
@@ -268,6 +284,8 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         new = dict(c, **now, comp=comp, misses=misses, correction=correction, matrix=matrix,
                    counters=counters.astype(jnp.int32), done=c["done"] + 1,
                    estimate=jnp.maximum(c["estimate"], local), acc=acc)
+        if explicit:
+            new["memo"] = memo
         if estimate is True:
             size = embedded_size(method, H_bound, q, p, Z, h_el)
             new["peak"] = peak_update(c["peak"], size, q, p, Z, h_el, ok & ~idle)

@@ -65,6 +65,13 @@ class AbstractMethod(abc.ABC):
             Hamiltonian, whose field refines the element polynomial between the nodes (save
             times, events, dense output: ``_output.refined``); False for a method given a
             Lagrangian, whose polynomial is read as it is.
+
+    Optional members (``_explicit``): ``explicit_form(structure)`` returns, for the structure
+    of H that ``gj.structure`` read, a method whose element has a closed form, or None; that
+    method has ``explicit_start(H, q0, p0) -> memo`` and ``explicit(H, q0, p0, h, memo) ->
+    (Z, (dq, dp), memo)``, Z the root of its ``residual``, memo what one element hands the
+    next (Stormer-Verlet: the force). Fixed-step runs and ``step`` then call ``explicit``
+    instead of the solver.
     """
 
     fixed_point = False

@@ -95,6 +95,10 @@ class SolverOptions:
         krylov_tolerance, krylov_restart, krylov_restarts: GMRES's relative residual (each
             update leaves this much of the error, so the updates reach the floor in two or
             three), its restart length and the number of restarts.
+        explicit: compute an element in closed form, without iteration, where the method has
+            an explicit form for the structure read from H (``gj.structure``; e.g.
+            ``GalerkinVI(1, gj.trapezoid())`` on a separable H is Stormer-Verlet, docs/methods.md,
+            "Explicit elements"). The same root to round-off; False iterates it as any other.
     """
 
     max_iterations: int = 48
@@ -121,6 +125,7 @@ class SolverOptions:
     krylov_tolerance: float = 1e-7
     krylov_restart: int = 20
     krylov_restarts: int = 10
+    explicit: bool = True
 
     def __post_init__(self):
         for name in ("max_iterations", "dense_limit", "small", "sweep_dimension", "patience", "newton_stretch",
@@ -145,8 +150,9 @@ class SolverOptions:
         if isinstance(self.tolerance, bool) or not isinstance(self.tolerance, (int, float)) or not (
                 0.0 <= self.tolerance < 1.0):
             raise ValueError(f"SolverOptions.tolerance must be a number in [0, 1), got {self.tolerance!r}.")
-        if not isinstance(self.krylov, bool):
-            raise TypeError(f"SolverOptions.krylov must be a bool, got {self.krylov!r}.")
+        for name in ("krylov", "explicit"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"SolverOptions.{name} must be a bool, got {getattr(self, name)!r}.")
 
     def fixed_point_patience_for(self, large):
         """Iterations a fixed-point member of a small (False) or large (True) system takes in

@@ -70,6 +70,11 @@ def check_controller(controller, method, batch=None):
             "LagrangianVI is given L(q, qdot), which has no Hamilton's field for the embedded "
             "estimate or the time transformation: use GalerkinVI on the matching H, or fixed steps."
         )
+    if type(method).__name__ == "Composition" and not isinstance(controller, TimeTransform):
+        raise ValueError(
+            "Composition with a PIDController: the error estimate measures the composition's "
+            "interpolating cubic, not its steps; use fixed steps or a TimeTransform."
+        )
     if isinstance(controller, TimeTransform):
         if type(method).__name__ == "ModifiedMidpoint":
             raise ValueError(

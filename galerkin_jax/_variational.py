@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _basis
+from . import _basis, _explicit
 from ._method import degree_and_rule
 from ._pytree import pytree_dataclass
 
@@ -91,6 +91,14 @@ class GalerkinVI(degree_and_rule("s", least=1)):
         c, mu = jnp.split(Z, 2)
         Q = _basis.combine(_basis.antiderivative_matrix(self.s), c)
         return jnp.concatenate([Q, jnp.concatenate([mu, jnp.zeros_like(mu[:1])])], axis=1)
+
+    def explicit_form(self, structure):
+        """For s = 1, a concrete rule with points at alpha = 0 and 1 only and a separable H: the
+        element in closed form (``_explicit.ExplicitVI``; the trapezoid: Stormer-Verlet); else None."""
+        indices = _explicit.endpoint_indices(self.quadrature) if self.s == 1 else None
+        if indices is None or not structure.separable:
+            return None
+        return _explicit.ExplicitVI(self, *indices)
 
 
 @pytree_dataclass

@@ -1,0 +1,109 @@
+"""Elements computed in closed form where the structure of H makes them explicit.
+
+``GalerkinVI(1, rule)`` with every point of its rule at alpha = 0 or 1 (``gj.trapezoid()``,
+``gj.gauss_lobatto(2)``) has, for a separable H = T(p) + V(q) (``gj.structure``), element
+equations [Tang, eqs. (2.26), (2.32)] with s = 1, Q linear and P = p0 + mu constant:
+
+    mu = h W0 g(q0),   c = h (W0 + W1) T'(p0 + mu),   q1 = q0 + c,
+    p1 = p0 + h (W0 g(q0) + W1 g(q1)),   g = -V',
+
+W0, W1 the weights at alpha = 0 and 1: a triangular system, solved in this order without
+iteration. With the trapezoid (W0 = W1 = 1/2) it is the Stormer-Verlet scheme
+(kick-drift-kick; Hairer, Lubich, Wanner, Geometric Numerical Integration, eq. (I.3.6)),
+with W1 = 0 or W0 = 0 the two symplectic Euler schemes. The force g(q1) of one element is
+g(q0) of the next (first same as last), so a step costs one gradient of V and one of T.
+
+The protocol's members (``residual``, ``polynomial``, ...) are the wrapped method's: a run
+whose elements the solver iterates (a controller, ``save_at``, events, a sweep) solves the same
+equations from the same start; the fixed-step scan (``_march``) and ``step`` call ``explicit``.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._method import AbstractMethod
+from ._pytree import pytree_dataclass
+from ._structure import structure
+
+
+@pytree_dataclass
+class ExplicitVI(AbstractMethod):
+    """``GalerkinVI(1, rule)`` on a separable H, its element in closed form (module docstring).
+
+    Args:
+        method: the ``GalerkinVI(1, rule)``; its weights may be traced.
+        start, end: static indices of the rule's points at alpha = 0 and at alpha = 1.
+    """
+
+    method: AbstractMethod
+    start: tuple = dataclasses.field(metadata=dict(static=True))
+    end: tuple = dataclasses.field(metadata=dict(static=True))
+
+    fixed_point = True
+    partition_axis = 0
+    settle = 0
+    hamiltonian = True
+
+    def initial_guess(self, q0, p0, previous=None, ratio=None):
+        return self.method.initial_guess(q0, p0, previous, ratio=ratio)
+
+    def residual(self, H, q0, p0, Z, h, part=None):
+        return self.method.residual(H, q0, p0, Z, h, part=part)
+
+    def increment(self, H, q0, p0, Z, h):
+        return self.method.increment(H, q0, p0, Z, h)
+
+    def polynomial(self, H, q0, p0, Z, h):
+        return self.method.polynomial(H, q0, p0, Z, h)
+
+    def local_error(self, H, q0, p0, Z, h):
+        return self.method.local_error(H, q0, p0, Z, h)
+
+    def explicit_start(self, H, q0, p0):
+        """g(q0) = -dH/dq at the start of a run, the force the first element reuses."""
+        return -jax.grad(H, argnums=0)(q0, p0)
+
+    def explicit(self, H, q0, p0, h, g0):
+        """The element from the force ``g0 = g(q0)``: ``(Z, (dq, dp), g(q1))``."""
+        w = jnp.asarray(self.method.quadrature.weights, q0.dtype)
+        W0, W1 = sum(w[i] for i in self.start), sum(w[i] for i in self.end)
+        mu = h * W0 * g0
+        P = p0 + mu
+        c = h * (W0 + W1) * jax.grad(H, argnums=1)(q0, P)  # T'(P): reads no q
+        g1 = -jax.grad(H, argnums=0)(q0 + c, P)  # -V'(q1): reads no p
+        Z = jnp.stack([c, mu])  # GalerkinVI's unknowns (c_0 | mu_0)
+        return Z, (c, h * (W0 * g0 + W1 * g1)), g1
+
+
+def endpoint_indices(rule):
+    """``(start, end)``: the indices of a concrete rule's points at 0 and at 1, or None where a
+    point lies inside (0, 1) or the points are traced."""
+    if isinstance(rule.points, jax.core.Tracer) or np.ndim(rule.points) != 1:
+        return None
+    points = np.asarray(rule.points)
+    if not np.all((points == 0.0) | (points == 1.0)):
+        return None
+    return tuple(int(i) for i in np.flatnonzero(points == 0.0)), tuple(int(i) for i in np.flatnonzero(points == 1.0))
+
+
+def explicit_form(method, H, q0, p0, args, solver):
+    """``method``'s explicit form for the structure of ``H`` (its ``explicit_form(structure)``
+    member), or ``method`` itself where it has none or ``solver.explicit`` is False.
+
+    Args:
+        H: the user's function (flattened states, ``_shape``), args unbound.
+        q0, p0: the start state, shape ``(d,)``; args: H's third argument or None.
+    """
+    form = getattr(method, "explicit_form", None)
+    if not solver.explicit or form is None or not method.hamiltonian:
+        return method
+    explicit = form(structure(H, q0, p0, args))
+    return method if explicit is None else explicit
+
+
+def is_explicit(method):
+    """Whether the method computes its element in closed form (``explicit``)."""
+    return callable(getattr(method, "explicit", None))

@@ -1,0 +1,234 @@
+"""Structure read from H (gj.structure), explicit elements and compositions (issue 44)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import galerkin_jax as gj
+from galerkin_jax._composition import SCHEMES
+
+import helpers
+
+VERLET = gj.GalerkinVI(1, gj.trapezoid())
+ITERATED = gj.SolverOptions(explicit=False)
+
+
+# --- structure ---------------------------------------------------------------------------
+
+
+@jax.custom_jvp
+def _sqrt_by_newton(x):
+    """A while loop inside a custom derivative: the analysis follows it."""
+    return jax.lax.while_loop(lambda c: jnp.abs(c * c - x) > 1e-12 * x, lambda c: 0.5 * (c + x / c), x)
+
+
+_sqrt_by_newton.defjvp(lambda primals, tangents: (_sqrt_by_newton(primals[0]),
+                                                  tangents[0] / (2 * _sqrt_by_newton(primals[0]))))
+
+Q, P = jnp.array([1.0, 0.5]), jnp.array([0.2, -0.3])
+
+
+@pytest.mark.parametrize("H", [
+    lambda q, p: p @ p / 2 - 1 / jnp.sqrt(q @ q),
+    lambda q, p: jnp.sum(jnp.cosh(p)) + jnp.linalg.norm(q) + jax.lax.cond(q[0] > 0, lambda: q[1] ** 2, lambda: q[0]),
+    lambda q, p: p @ p / 2 + _sqrt_by_newton(q @ q + 1) + jax.lax.fori_loop(0, 3, lambda i, x: x * q[0], 1.0),
+], ids=["kepler", "cosh-norm-cond", "custom-jvp-while-scan"])
+def test_structure_reads_separable_programs_as_separable(H):
+    s = gj.structure(H, Q, P)
+    assert s.separable and not s.force_reads_p and not s.velocity_reads_q and s.reason == ""
+
+
+@pytest.mark.parametrize("H, args", [
+    (lambda q, p, eps: p @ p / 2 + q @ q / 2 + eps * (q @ p), 0.0),  # eps = 0 in args: zero by value only
+    (lambda q, p: p @ p / 2 + q @ q / 2 + q @ p - p @ q, None),  # cancels numerically
+    (lambda q, p: p @ p / 2 + q @ q / 2 + 0.0 * (q @ p), None),  # times 0.0
+    (lambda q, p: p @ p / 2 + q @ q / 2 + (q[0] - 1.0) ** 2 * p[0], None),  # zero with its gradients at q0
+    (lambda q, p: p @ p / 2 + _sqrt_by_newton(q @ q + p[0] ** 2 + 1), None),
+    (lambda q, p: p @ p / 2 + jax.lax.while_loop(lambda c: c[1] < 3, lambda c: (c[0] * q[0], c[1] + 1), (1.0, 0))[0],
+     None),  # no reverse mode through while_loop: undecidable, general
+], ids=["eps-args", "qp-minus-pq", "times-zero", "zero-at-q0", "custom-jvp-p", "while-undecidable"])
+def test_structure_is_general_where_separability_holds_only_by_value(H, args):
+    """Never a wrong "separable": each H is non-separable as a program although each is
+    separable at Q (or everywhere, by value)."""
+    q0 = jnp.array([1.0, 0.5])
+    assert not gj.structure(H, q0, P, args=args).separable
+
+
+def test_structure_of_pytree_states_and_args():
+    q = {"x": jnp.ones(3), "y": jnp.ones((2, 2))}
+    p = jax.tree.map(jnp.zeros_like, q)
+    kinetic = lambda p: sum(jnp.sum(x ** 2) for x in jax.tree.leaves(p)) / 2
+    assert gj.structure(lambda q, p, a: kinetic(p) + a["k"] * jnp.sum(q["x"]) * jnp.sum(q["y"]), q, p,
+                        args={"k": 2.0}).separable
+    s = gj.structure(lambda q, p: kinetic(p) + jnp.sum(q["x"]) * jnp.sum(p["y"]), q, p)
+    assert not s.separable and s.force_reads_p and s.velocity_reads_q
+
+
+# --- explicit elements -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("rule", [gj.trapezoid(), gj.gauss_lobatto(2)], ids=["trapezoid", "lobatto2"])
+def test_explicit_verlet_equals_the_iterated_galerkin_vi_to_roundoff(rule):
+    """Measured: 4e-16 (q), 9e-16 (p) after 1000 Kepler steps; 1e-13 leaves room for the
+    round-off of other CPUs (it grows like sqrt(n))."""
+    H, q0, p0 = helpers.kepler()
+    method = gj.GalerkinVI(1, rule)
+    a = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=1000)
+    b = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=1000, solver=ITERATED)
+    assert int(a.stats["num_newton_iterations"]) == 0 and int(b.stats["num_newton_iterations"]) > 0
+    assert int(a.status) == 0
+    np.testing.assert_allclose(a.q, b.q, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(a.p, b.p, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(gj.step(H, q0, p0, method=method, h=0.1),
+                               gj.step(H, q0, p0, method=method, h=0.1, solver=ITERATED), rtol=0, atol=1e-15)
+
+
+def test_explicit_verlet_is_stormer_verlet():
+    """Kick-drift-kick written out [HLW, eq. (I.3.6)], for a non-quadratic T(p)."""
+    T = lambda p: jnp.sum(jnp.cosh(p))
+    V = lambda q: jnp.sum(q ** 4) / 4 + q[0] * q[1]
+    H = lambda q, p: T(p) + V(q)
+    q0, p0, h = jnp.array([0.3, -0.2]), jnp.array([0.1, 0.4]), 0.05
+    half = p0 - h / 2 * jax.grad(V)(q0)
+    q1 = q0 + h * jax.grad(T)(half)
+    p1 = half - h / 2 * jax.grad(V)(q1)
+    np.testing.assert_allclose(jnp.concatenate(gj.step(H, q0, p0, method=VERLET, h=h)), jnp.concatenate([q1, p1]),
+                               rtol=0, atol=1e-15)
+
+
+def test_general_h_keeps_the_iterated_element():
+    H, q0, p0 = helpers.non_separable()
+    sol = gj.integrate(H, q0, p0, method=VERLET, h=0.05, n_steps=20)
+    assert int(sol.status) == 0 and int(sol.stats["num_newton_iterations"]) > 0
+
+
+def test_explicit_verlet_has_order_2_and_is_symplectic():
+    """Fitted slope over h = 2 pi / 200 ... / 1600: 2.00 (the Verlet error constant is smooth
+    in h here); symplecticity defect of the AD Jacobian: round-off (measured 2e-16)."""
+    H, q0, p0 = helpers.kepler()
+    T = 2 * np.pi
+    qe, pe = helpers.kepler_exact(T)
+    ns = (200, 400, 800, 1600)
+    errs = []
+    for n in ns:
+        s = gj.integrate(H, q0, p0, method=VERLET, h=T / n, n_steps=n, error_estimate=False)
+        errs.append(float(jnp.max(jnp.abs(jnp.concatenate([s.q[-1] - qe, s.p[-1] - pe])))))
+    assert helpers.fitted_order([T / n for n in ns], errs) == pytest.approx(2.0, abs=0.1)
+    A = gj.amplification_matrix(H, q0, p0, method=VERLET, h=0.1)
+    assert helpers.symplecticity_defect(A) < 1e-14
+
+
+def test_explicit_verlet_energy_stays_bounded():
+    """Pendulum, h = 0.1, 20000 steps: the energy error oscillates at O(h^2) (measured max
+    1.47e-3 in both halves of the run, equal to 1e-7) without drift; a drift of the first half's size would
+    double it."""
+    H, q0, p0 = helpers.pendulum()
+    sol = gj.integrate(H, q0, p0, method=VERLET, h=0.1, n_steps=20000, save_every=10, error_estimate=False)
+    e = np.abs(np.asarray(jax.vmap(H)(sol.q, sol.p)) - float(H(q0, p0)))
+    first, second = e[: e.size // 2].max(), e[e.size // 2:].max()
+    assert first < 5e-3 and second < 1.5 * first
+
+
+def test_explicit_verlet_derivatives_vmap_and_save_at():
+    H, q0, p0 = helpers.kepler()
+    run = lambda h: gj.integrate(H, q0, p0, method=VERLET, h=h, n_steps=100).q[-1, 0]
+    eps = 1e-6
+    fd = (run(0.01 + eps) - run(0.01 - eps)) / (2 * eps)
+    assert float(jax.grad(run)(0.01)) == pytest.approx(float(fd), rel=1e-7)  # central FD: O(eps^2) + round-off
+    gq = jax.grad(lambda q: gj.integrate(H, q, p0, method=VERLET, h=0.01, n_steps=50).p[-1, 1])(q0)
+    gq_iter = jax.grad(lambda q: gj.integrate(H, q, p0, method=VERLET, h=0.01, n_steps=50, solver=ITERATED).p[-1, 1])(q0)
+    np.testing.assert_allclose(gq, gq_iter, rtol=1e-10)  # IFT through the iterations: the same derivative
+    hs = jnp.array([0.01, 0.02])
+    batch = jax.vmap(lambda h: gj.integrate(H, q0, p0, method=VERLET, h=h, n_steps=100).q[-1])(hs)
+    np.testing.assert_allclose(batch[1], gj.integrate(H, q0, p0, method=VERLET, h=0.02, n_steps=100).q[-1],
+                               rtol=0, atol=1e-14)
+    ts = jnp.linspace(0.0, 1.0, 5)
+    saved = gj.integrate(H, q0, p0, method=VERLET, h=0.01, t1=1.0, save_at=ts)
+    nodes = gj.integrate(H, q0, p0, method=VERLET, h=0.01, n_steps=100)
+    assert int(saved.status) == 0
+    np.testing.assert_allclose(saved.q[-1], nodes.q[-1], rtol=0, atol=1e-12)
+
+
+# --- compositions ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(SCHEMES))
+def test_composition_coefficients_are_symmetric_and_consistent(name):
+    """Sum 1, symmetric, and sum gamma^3 = 0 (order 4 for a symmetric order-2 base, HLW eq.
+    (V.3.4)); order >= 6 also sum gamma^5 = 0. Measured: below 3e-16."""
+    order, gamma = SCHEMES[name]
+    g = np.asarray(gamma)
+    assert abs(g.sum() - 1) < 1e-15 and np.array_equal(g, g[::-1])
+    assert abs(np.sum(g ** 3)) < 1e-14
+    if order >= 6:
+        assert abs(np.sum(g ** 5)) < 1e-14
+
+
+# measured slopes (Kepler, e = 0.5, one period): yoshida4 3.98, suzuki4 4.00, mclachlan4 4.00,
+# yoshida6 6.00, kahan_li6 6.00, kahan_li8 8.1 (above 1e-11), kahan_li8_s17 8.0
+@pytest.mark.parametrize("name, ns", [
+    ("yoshida4", (100, 200, 400)), ("suzuki4", (100, 200, 400)), ("mclachlan4", (100, 200, 400)),
+    ("yoshida6", (100, 200, 400)), ("kahan_li6", (100, 200, 400)), ("kahan_li8", (50, 100, 200)),
+    ("kahan_li8_s17", (50, 100, 200)),
+])
+def test_composition_of_verlet_has_the_schemes_order(name, ns):
+    H, q0, p0 = helpers.kepler()
+    T = 2 * np.pi
+    qe, pe = helpers.kepler_exact(T)
+    method = gj.Composition(VERLET, name)
+    errs = []
+    for n in ns:
+        s = gj.integrate(H, q0, p0, method=method, h=T / n, n_steps=n, error_estimate=False)
+        assert int(s.stats["num_newton_iterations"]) == 0  # explicit: no iteration
+        errs.append(float(jnp.max(jnp.abs(jnp.concatenate([s.q[-1] - qe, s.p[-1] - pe])))))
+    assert helpers.fitted_order([T / n for n in ns], errs, floor=1e-13) == pytest.approx(SCHEMES[name][0], abs=0.3)
+
+
+def test_composition_of_midpoint_cg1_has_order_4():
+    """cG(1) with the midpoint rule (implicit midpoint, symmetric, order 2) by the triple jump:
+    measured slope 4.08 over these h."""
+    H, q0, p0 = helpers.kepler()
+    T = 2 * np.pi
+    qe, pe = helpers.kepler_exact(T)
+    method = gj.Composition(gj.CG(1, gj.gauss_legendre(1)), "yoshida4")
+    ns = (100, 200, 400)
+    errs = []
+    for n in ns:
+        s = gj.integrate(H, q0, p0, method=method, h=T / n, n_steps=n, error_estimate=False)
+        assert int(s.status) == 0
+        errs.append(float(jnp.max(jnp.abs(jnp.concatenate([s.q[-1] - qe, s.p[-1] - pe])))))
+    assert helpers.fitted_order([T / n for n in ns], errs) == pytest.approx(4.0, abs=0.2)
+
+
+@pytest.mark.parametrize("method", [gj.Composition(gj.CG(1, gj.gauss_legendre(1)), "yoshida4"),
+                                    gj.Composition(VERLET, "kahan_li6")], ids=["cg1-yoshida4", "verlet-kahan-li6"])
+def test_composition_is_symplectic_and_symmetric(method):
+    """Phi_{-h} o Phi_h = id, with Phi_{-h} for H that of -H for h: measured 2e-16; the
+    symplecticity defect of the AD Jacobian: measured below 7e-16."""
+    H, q0, p0 = helpers.kepler()
+    q1, p1 = gj.step(H, q0, p0, method=method, h=0.1)
+    q2, p2 = gj.step(lambda q, p: -H(q, p), q1, p1, method=method, h=0.1)
+    assert float(jnp.max(jnp.abs(jnp.concatenate([q2 - q0, p2 - p0])))) < 1e-14
+    A = gj.amplification_matrix(H, q0, p0, method=method, h=0.1)
+    assert helpers.symplecticity_defect(A) < 1e-13
+
+
+def test_composition_save_at_and_refusals():
+    H, q0, p0 = helpers.kepler()
+    method = gj.Composition(VERLET, "yoshida4")
+    ts = jnp.linspace(0.0, 1.0, 5)
+    saved = gj.integrate(H, q0, p0, method=method, h=0.01, t1=1.0, save_at=ts)
+    nodes = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=100)
+    assert int(saved.status) == 0
+    np.testing.assert_allclose(saved.q[-1], nodes.q[-1], rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="Composition with a PIDController"):
+        gj.integrate(H, q0, p0, method=method, h=0.01, t1=1.0, controller=gj.PIDController(1e-6, 1e-6))
+    with pytest.raises(ValueError, match="DG"):
+        gj.Composition(gj.DG(1, gj.gauss_legendre(2)))
+    with pytest.raises(ValueError, match="not symmetric"):
+        gj.Composition(gj.CG(1, gj.gauss_radau(2)))
+    with pytest.raises(ValueError, match="unknown scheme"):
+        gj.Composition(VERLET, "yoshida5")
+    with pytest.raises(ValueError, match="symmetric and sum to 1"):
+        gj.Composition(VERLET, (0.5, 0.6))
