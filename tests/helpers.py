@@ -109,23 +109,29 @@ def first_derivatives(f, tangent, cotangent):
     return derivatives
 
 
-def check_first_derivatives(f, args, *, eps, atol, rtol, seed=0):
-    """``jax.test_util.check_grads(f, args, order=1, modes=("fwd", "rev"))`` with one compiled
-    program (``first_derivatives``) for random t and c: J t must equal the central difference
-    (f(x + eps t) - f(x - eps t)) / (2 eps), and <J^T c, t> must equal <c, that difference>."""
+def _products(f, args, eps, seed):
+    """For random t and c: ``(J t, <J^T c, t>, D, c)``, D the central difference
+    (f(x + eps t) - f(x - eps t)) / (2 eps), all from one compiled program (``first_derivatives``)."""
     rng = np.random.RandomState(seed)
     args = tuple(jnp.asarray(x, jnp.asarray(x).dtype) for x in args)  # not weakly typed, as x + eps t
     tangent = tuple(jnp.asarray(rng.standard_normal(x.shape), x.dtype) for x in args)
     out = jax.eval_shape(f, *args)
     cotangent = jnp.asarray(rng.standard_normal(out.shape), out.dtype)
     derivatives = first_derivatives(f, tangent, cotangent)
-
     _, forward, reverse = derivatives(args)
     shifted = lambda sign: derivatives(tuple(x + sign * eps * t for x, t in zip(args, tangent)))[0]
     numerical = (shifted(1.0) - shifted(-1.0)) / (2 * eps)
-    np.testing.assert_allclose(forward, numerical, atol=atol, rtol=rtol, err_msg="forward mode")
     projected = sum(jnp.vdot(c, t) for c, t in zip(reverse, tangent))
-    np.testing.assert_allclose(projected, jnp.vdot(cotangent, numerical), atol=atol, rtol=rtol, err_msg="reverse mode")
+    return np.asarray(forward), float(projected), np.asarray(numerical), np.asarray(cotangent)
+
+
+def check_first_derivatives(f, args, *, eps, atol, rtol, seed=0):
+    """``jax.test_util.check_grads(f, args, order=1, modes=("fwd", "rev"))`` with one compiled
+    program (``first_derivatives``) for random t and c: J t must equal the central difference
+    (f(x + eps t) - f(x - eps t)) / (2 eps), and <J^T c, t> must equal <c, that difference>."""
+    forward, projected, numerical, cotangent = _products(f, args, eps, seed)
+    np.testing.assert_allclose(forward, numerical, atol=atol, rtol=rtol, err_msg="forward mode")
+    np.testing.assert_allclose(projected, np.vdot(cotangent, numerical), atol=atol, rtol=rtol, err_msg="reverse mode")
 
 
 def cg_element(k, H, z0, h, sweeps=100):
@@ -142,19 +148,8 @@ def first_derivative_errors(f, args, *, eps, seed=0):
     the same random t and c, the central difference D = (f(x + eps t) - f(x - eps t)) / (2 eps):
     forward = max |J t - D| / max |D|, reverse = |<J^T c, t> - <c, D>| / sum |c D| (the size of
     the terms of the dot product, which a cancelling sum could not make small)."""
-    rng = np.random.RandomState(seed)
-    args = tuple(jnp.asarray(x, jnp.asarray(x).dtype) for x in args)
-    tangent = tuple(jnp.asarray(rng.standard_normal(x.shape), x.dtype) for x in args)
-    out = jax.eval_shape(f, *args)
-    cotangent = jnp.asarray(rng.standard_normal(out.shape), out.dtype)
-    derivatives = first_derivatives(f, tangent, cotangent)
-
-    _, forward, reverse = derivatives(args)
-    shifted = lambda sign: derivatives(tuple(x + sign * eps * t for x, t in zip(args, tangent)))[0]
-    numerical = np.asarray((shifted(1.0) - shifted(-1.0)) / (2 * eps))
-    forward_error = float(np.max(np.abs(np.asarray(forward) - numerical)) / np.max(np.abs(numerical)))
-    projected = float(sum(jnp.vdot(c, t) for c, t in zip(reverse, tangent)))
-    c = np.asarray(cotangent)
+    forward, projected, numerical, c = _products(f, args, eps, seed)
+    forward_error = float(np.max(np.abs(forward - numerical)) / np.max(np.abs(numerical)))
     reverse_error = abs(projected - float(np.vdot(c, numerical))) / float(np.sum(np.abs(c * numerical)))
     return forward_error, reverse_error
 
