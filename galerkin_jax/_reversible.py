@@ -58,7 +58,8 @@ def check_reversible(method, *, controller=None, save_at=None, events=None, dens
     if not getattr(method, "hamiltonian", True):
         raise ValueError(f"{what} needs a method given a Hamiltonian; {name} is given a Lagrangian.")
     rule = getattr(method, "quadrature", None)
-    if isinstance(rule, QuadratureRule) and not any(isinstance(x, jax.core.Tracer) for x in (rule.points, rule.weights)):
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(rule))
+    if isinstance(rule, QuadratureRule) and not traced:
         if np.ndim(rule.points) == 1 and not _is_symmetric_rule(rule):
             raise ValueError(f"{what} needs a symmetric method; {name}'s rule is not symmetric about alpha = 1/2 "
                              "(points and weights), so its step with -h does not undo its step with h.")
