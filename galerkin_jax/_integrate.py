@@ -6,7 +6,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from . import _adjoint, _checks, _output, _shape, _span
+from . import _adjoint, _checks, _output, _reversible, _shape, _span
 from ._controllers import Event, Events, PIDController, TimeTransform
 from ._explicit import explicit_form
 
@@ -227,7 +227,12 @@ def integrate(
             one state per save instead of every element's residuals. A run whose steps are
             chosen as it runs (a controller, ``save_at``, events) keeps, for a gradient, the
             roots of its last 512 elements (at most 16 MiB) and solves the elements before them
-            again; ``checkpoint`` keeps sqrt(max_steps) of them (docs/derivatives.md). Static.
+            again; ``checkpoint`` keeps sqrt(max_steps) of them (docs/derivatives.md).
+            ``"reversible"``: a gradient stores nothing but the saves: its backward pass
+            rebuilds each state by an element of step -h, z_n = Phi_{-h}(z_{n+1})
+            (``_reversible``), memory O(1) in n_steps at twice the element solves. For symmetric
+            methods (cG(k), GalerkinVI with a symmetric rule, ModifiedMidpoint, compositions)
+            and fixed steps of ``n_steps`` or to a concrete t1; elsewhere a ValueError. Static.
         dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps), or
             O(max_steps) for a controller's run. Static.
         progress: show a progress bar (tqdm if installed, else lines on stderr), ticked from
@@ -249,6 +254,10 @@ def integrate(
     options = solver_options(method, max_newton_iterations, krylov, solver)
     method = explicit_form(method, H, q0, p0, args, options.solver)
     estimate = _span.check_estimate(error_estimate)
+    checkpoint = _reversible.check_checkpoint(checkpoint)
+    if checkpoint == _reversible.REVERSIBLE:
+        _reversible.check_reversible(method, controller=controller, save_at=save_at, events=events, dense=dense,
+                                     traced_end=n_steps is None and not _span.concrete(h, t0, t1))
     flags = (checkpoint, bool(dense), bool(progress), estimate)
     single = isinstance(events, Event)
     events = _span.check_events(events, q0, p0, t0)
@@ -372,6 +381,10 @@ def _integrate(H, q0, p0, method, h, args, t0, t1, h_last, n_steps, save_every, 
     n_active, t_end = None, t1
     if t1 is not None and h_last is None:
         n_active, h_last, t_end = reserved_to_t1(t0, t1, h, n_steps)
+    if checkpoint == _reversible.REVERSIBLE:  # n_active is None: the caller refused a traced end
+        final, saved = _reversible.reversible_march(
+            H, method, q0, p0, h, h_last, args, (options, n_steps // save_every, save_every, estimate, progress))
+        return solution(final, saved, None, q0, p0, h, save_every, t0, t_end)
     final, saved, kept = march(
         method, H, q0, p0, h, args, n_blocks=n_steps // save_every, block_size=save_every,
         options=options, checkpoint=checkpoint, dense=dense, progress=progress, estimate=estimate,

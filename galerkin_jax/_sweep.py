@@ -296,6 +296,8 @@ def sweep(
     reference = None if reference is None else tuple(jnp.asarray(r) for r in reference)
     dtype = configs.q0.dtype
     estimate = _span.check_estimate(error_estimate)
+    if checkpoint == "reversible":
+        raise ValueError("checkpoint='reversible' is integrate's (one fixed-step run); sweep takes True or False.")
     if controller is not None:
         if max_steps is not None:
             _span.check_max_steps(max_steps)
