@@ -63,10 +63,8 @@ def test_rebuild_roundoff_grows_like_n_to_three_halves_on_kepler():
     assert 1.2 < slope < 1.9
 
 
-@pytest.mark.parametrize("method, save_every", [(gj.CG(2, gj.gauss_legendre(2)), 8),
-                                                (gj.GalerkinVI(2, gj.gauss_lobatto(3)), 1),
-                                                (gj.CG(1, gj.trapezoid()), 40)],
-                         ids=["cG2-gauss2-every8", "VI2-lobatto3-every1", "cG1-trapezoid-every40"])
+@pytest.mark.parametrize("method, save_every", [(gj.GalerkinVI(2, gj.gauss_lobatto(3)), 8)],
+                         ids=["VI2-lobatto3-every8"])  # cG(1), GalerkinVI(1), compositions: below
 def test_reversible_gradient_equals_stored_for_every_input(method, save_every):
     """d/d(q0, p0, args, h, the rule's weights) of a loss on every saved state, 40 elements of a
     pendulum-like H with args: equal to the stored gradient to 1e-12 relative (measured ~1e-14;
@@ -92,7 +90,7 @@ def dataclass_with_weights(method, weights):
     return dataclasses.replace(method, quadrature=gj.QuadratureRule(method.quadrature.points, weights))
 
 
-@pytest.mark.parametrize("t1", [1.03, -1.03], ids=["forwards", "backwards"])
+@pytest.mark.parametrize("t1", [-1.03], ids=["backwards"])  # a shortened last element, of -H
 def test_reversible_gradient_to_a_concrete_t1(t1):
     """Fixed steps to t1 (the last element shortened, h_last) and backwards (t1 < t0, the run
     of -H): d/d(q0, p0) equal to the stored one to 1e-12 (measured ~1e-15)."""
