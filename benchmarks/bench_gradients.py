@@ -29,6 +29,9 @@ members: a controller's sweep over 8 tolerances (1e-4 to 1e-11, each member its 
 scheduler: the peers part's gradient / forward ratios at the default max_steps in six fresh processes
     with the default XLA flags and six with XLA's concurrency-optimised CPU scheduler off
     (``SCHEDULER_FLAG``), alternately.
+equinox: reverse mode through equinox's checkpointed while loop against the adjoint's sweeps, on
+    the same 600 Kepler elements (cG(4) + Gauss 4, h = 0.01): compile, forward and gradient time
+    and XLA's temporary buffers.
 fixed: gradients through fixed steps (d/dq0 of |q_N|^2 + |p_N|^2): Kepler e = 0.5 over one orbit,
     cG(6) + Gauss 6, 126 steps; the same with cG(2) + Gauss 3, h = 0.01, 2000 steps,
     ``checkpoint=True``; FPUT N = 64, cG(4) + Gauss 4, h = 0.035, 286 steps. Compile and run
@@ -464,8 +467,56 @@ def scheduler_part(processes=6):
     return results
 
 
+def equinox_part(repeat=10):
+    """Reverse mode through equinox's checkpointed while loop (``equinox.internal.while_loop(
+    kind="checkpointed")``, as diffrax's RecursiveCheckpointAdjoint) against the adjoint's
+    sweeps, on the same elements: Kepler e = 0.6, cG(4) + Gauss 4, a constant h = 0.01 to t = 6
+    (600 elements), d/dq0 of |z(6)|^2. equinox: a loop of elements, each root found by the
+    library's solver (held: ``_adjoint._resolve``) and differentiated by the implicit function
+    theorem (``_adjoint._element``), ``max_steps`` 1024; galerkin_jax: ``integrate(...,
+    save_at=[6])``, whose loop also keeps the error estimate and the counters."""
+    import equinox.internal as eqxi
+    from galerkin_jax import _adjoint
+    from galerkin_jax._march import solver_options
+    from galerkin_jax._solve import initial_matrix
+    H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
+    e, h, T, n = 0.6, 0.01, 6.0, 600
+    q0, p0 = jnp.array([1 - e, 0.0]), jnp.array([0.0, np.sqrt((1 + e) / (1 - e))])
+    method = gj.CG(4, gj.gauss_legendre(4))
+    options = solver_options(method, None, None, None)
+    spec = _adjoint.Spec(H, None, options, 1024)
+
+    def checkpointed(q0):
+        theta, z0, guess = (method, None), jnp.concatenate([q0, p0]), method.initial_guess(q0, p0)
+        held = jax.lax.stop_gradient
+
+        def body(c):
+            k, z, matrix, previous = c
+            Z, matrix, _ = _adjoint._resolve(H, held(theta), held(z), h, held(previous), matrix, options)
+            return k + 1, _adjoint._element(spec, H, theta, z, jnp.asarray(h), Z)[0], matrix, (z, Z, jnp.asarray(h),
+                                                                                              jnp.ones((), bool))
+
+        c = (0, z0, initial_matrix(guess, options), (z0, guess, jnp.asarray(h), jnp.zeros((), bool)))
+        return jnp.sum(eqxi.while_loop(lambda c: c[0] < n, body, c, max_steps=1024, kind="checkpointed")[1] ** 2)
+
+    def sweeps(q0):
+        sol = gj.integrate(H, q0, p0, method=method, h=h, t1=T, save_at=jnp.array([T]))
+        return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.p[-1] ** 2)
+
+    results = {}
+    for name, loss in (("galerkin_jax sweeps", sweeps), ("equinox checkpointed", checkpointed)):
+        compile_s, call = compiled(jax.grad(loss), q0)
+        forward_compile_s, forward = compiled(loss, q0)
+        results[name] = dict(gradient=[float(x) for x in call(q0)], compile_s=compile_s,
+                             forward_compile_s=forward_compile_s, gradient_s=best_time(call, q0, repeat=repeat),
+                             forward_s=best_time(forward, q0, repeat=repeat),
+                             temp_mb=call.memory_analysis().temp_size_in_bytes / 1e6)
+        print(name, {k: v for k, v in results[name].items() if k != "gradient"}, flush=True)
+    return results
+
+
 PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "fixed": fixed_part, "kept": kept_part,
-         "products": products_part, "members": members_part, "scheduler": scheduler_part}
+         "products": products_part, "members": members_part, "scheduler": scheduler_part, "equinox": equinox_part}
 
 
 def main():

@@ -202,10 +202,12 @@ def _events_update(events, gs, c, step, accept, clock, samples, W):
     for k, (event, g, (_, crossing, g_b)) in enumerate(zip(events, gs, samples)):
         f = lambda a, g=g: g(_output.time_at(z, W, a, t, h, clock), _output.on_polynomial(z, W, a[None])[0])
 
-        def located(_, f=f, k=k):
-            _, crossing, _ = _event_crossings(events[k:k + 1], gs[k:k + 1], dict(g_a=c["g_a"][k:k + 1]), step, accept,
-                                              clock, W)[0]
-            roots = jax.vmap(lambda lo, hi: _output.locate(f, lo, hi, f(lo)))(alphas[:-1], alphas[1:])
+        def located(_, f=f, k=k, event=event, g_b=g_b):
+            inner = jax.vmap(f)(alphas[1:-1])  # g on W, between the nodes' own values
+            values = jnp.concatenate([c["g_a"][k][None], inner, g_b[None]])
+            crossing = accept & _crossing(event, values[:-1], values[1:])
+            f_lo = jnp.concatenate([f(alphas[0])[None], inner])
+            roots = jax.vmap(lambda lo, hi, f_lo: _output.locate(f, lo, hi, f_lo))(alphas[:-1], alphas[1:], f_lo)
             return jnp.where(crossing, roots, jnp.inf)
 
         roots = jax.lax.cond(jnp.any(crossing), located, lambda _: jnp.full(crossing.shape, jnp.inf, dtype), None)

@@ -572,13 +572,22 @@ def _unwritten(kind, steps, size):
     return kind.owner >= steps
 
 
+def _each(kinds, n):
+    """``local -> [rows]``: the rows element n writes of every output that each element writes
+    once (``_Rows.each``), in one function (one linearisation for all of them)."""
+    each = [kind for kind in kinds if kind.each]
+    return each, lambda local: [kind.value(local, None, n) for kind in each]
+
+
 def _write_tangents(kinds, n, local, d_local, extra, d_extra, out):
     """Element n's rows of every output: the tangents of their values (forward mode)."""
+    each, rows = _each(kinds, n)
+    _, d_rows = jax.jvp(rows, (local,), (d_local,))
+    for kind, values in zip(each, d_rows):
+        out = dict(out, **{key: out[key].at[kind.owner(n)].set(row, mode="drop") for key, row in
+                           zip(kind.keys, values)})
     for kind in kinds:
         if kind.each:
-            _, rows = jax.jvp(lambda l: kind.value(l, None, n), (local,), (d_local,))
-            out = dict(out, **{key: out[key].at[kind.owner(n)].set(row, mode="drop") for key, row in
-                               zip(kind.keys, rows)})
             continue
 
         def one(i, out, kind=kind):
@@ -594,13 +603,12 @@ def _read_cotangents(kinds, n, local, extra, ct, extra_bar):
     """Element n's rows of every output: their cotangents pulled back to the element's
     ``local`` values and the row-wise inputs (reverse mode), the transpose of
     ``_write_tangents``."""
-    local_bar = jax.tree.map(jnp.zeros_like, local)
+    each, rows = _each(kinds, n)
+    _, pull = jax.vjp(rows, local)
+    (local_bar,) = pull([tuple(ct[key].at[kind.owner(n)].get(mode="fill", fill_value=0) for key in kind.keys)
+                         for kind in each])
     for kind in kinds:
         if kind.each:
-            _, pull = jax.vjp(lambda l: kind.value(l, None, n), local)
-            row = kind.owner(n)
-            (bar,) = pull(tuple(ct[key].at[row].get(mode="fill", fill_value=0) for key in kind.keys))
-            local_bar = jax.tree.map(jnp.add, local_bar, bar)
             continue
 
         def one(i, bars, kind=kind):

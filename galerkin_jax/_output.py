@@ -58,13 +58,14 @@ def state_at(z0, W, z1, alpha, node):
     tangent of w's change from there: so a state at a node has w's slope in alpha. The
     one definition of a state between nodes that ``save_at``, ``Solution.evaluate`` and their
     derivatives read."""
-    P = lambda a: _basis.legendre_values(jnp.reshape(a, (1,)).astype(W.dtype), W.shape[0])[0]
-    here = P(alpha)
-    # w's change from the node, zero in value (the node's state exactly) with its tangent
-    change = lambda end: (lambda x: x - jax.lax.stop_gradient(x))(_basis.combine(here - P(end), W))
-    at_start = z0 + change(jnp.zeros_like(alpha))
-    at_end = z1 + change(jnp.ones_like(alpha))
-    return jnp.where(node < 0, at_start, jnp.where(node > 0, at_end, z0 + _basis.combine(here, W)))
+    m = W.shape[0]
+    here = _basis.legendre_values(jnp.reshape(alpha, (1,)).astype(W.dtype), m)[0]
+    ends = np.polynomial.legendre.legvander(np.array([-1.0, 1.0]), m - 1)  # P_j at alpha = 0, 1: +-1
+    at = jnp.where(node < 0, ends[0], jnp.where(node > 0, ends[1], 0.0)).astype(W.dtype)
+    delta = _basis.combine(here - at, W)  # w(alpha) - w(node), or w(alpha) - z0 inside
+    # at a node: zero in value (the node's state exactly), with w's tangent
+    delta = jnp.where(node == 0, delta, delta - jax.lax.stop_gradient(delta))
+    return jnp.where(node > 0, z1, z0) + delta
 
 
 def truncated(W, beta):
