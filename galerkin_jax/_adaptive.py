@@ -191,9 +191,8 @@ def _events_update(events, gs, c, step, accept, clock, samples, W):
     (``_output.refined``), in order, by ``_output.locate``: where the samples of the element's
     own polynomial (``samples``, ``_event_crossings``) change sign, g is sampled again on ``W``,
     whose brackets the roots are located in (a root beside a sample point may lie on the other
-    side of it on W). A terminal
-    event's first crossing ends the run there; no later crossing of any event in the element
-    counts. Returns the carry's event fields and ``(alpha_stop, ended)``: where a terminal event
+    side of it on W). A terminal event's first crossing ends the run there; no later crossing of
+    any event in the element counts. Returns the carry's event fields and ``(alpha_stop, ended)``: where a terminal event
     ended the run (inf: none did) and which (-1: none)."""
     z, t, h = step["z"], step["t"], step["h"]
     dtype = z.dtype
