@@ -11,7 +11,7 @@ from ._controllers import Event, Events, PIDController, TimeTransform
 from ._explicit import explicit_form
 
 from ._march import (bind_args, input_status, march, nan_if_failed, reserved_to_t1, short_of_t1, solve_element,
-                     solver_options)
+                     solver_options, time_reversed)
 from ._output import DenseOutput
 from ._pytree import pytree_dataclass
 from ._solve import SolverOptions, Status, throw_if_failed
@@ -286,18 +286,12 @@ def _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_a
     flip = lambda x: x if x is None or isinstance(x, str) else -jnp.asarray(x, q0.dtype)  # "steps" stays
     reversed_events = None if events is None else tuple(dataclasses.replace(e, g=_time_reversed_event(e.g))
                                                          for e in events)
-    sol = _dispatch(_time_reversed(H), q0, p0, method, h, args, None, flip(t0), flip(t1), controller, max_steps,
+    sol = _dispatch(time_reversed(H), q0, p0, method, h, args, None, flip(t0), flip(t1), controller, max_steps,
                     flip(save_at), reversed_events, save_every, options, flags)
     dense = None if sol.dense is None else dataclasses.replace(
         sol.dense, t=-sol.dense.t, t_end=-sol.dense.t_end, t1=-sol.dense.t1, direction=-1)
     events = None if sol.events is None else [dataclasses.replace(e, t=-e.t) for e in sol.events]
     return dataclasses.replace(sol, t=-sol.t, dense=dense, events=events)
-
-
-@functools.lru_cache(maxsize=None)
-def _time_reversed(H):
-    """-H (one function per H, so that a run backwards compiles once)."""
-    return lambda q, p, *args: -H(q, p, *args)
 
 
 @functools.lru_cache(maxsize=None)

@@ -9,6 +9,7 @@ low bits, so round-off grows like sqrt(n)), the predictor's history, the iterati
 the first failure's status, Newton counts and the largest local error estimate.
 """
 
+import functools
 import inspect
 import math
 
@@ -23,6 +24,13 @@ from ._solve import Options, SolverOptions, Status, initial_matrix, solve, solve
 
 def bind_args(H, args):
     return H if args is None else (lambda q, p: H(q, p, args))
+
+
+@functools.lru_cache(maxsize=None)
+def time_reversed(H):
+    """-H, one function per H (a run of it compiles once): its element of step h is H's of step
+    -h, every residual holding H through h DH (a run backwards, ``_reversible``'s rebuild)."""
+    return lambda q, p, *args: -H(q, p, *args)
 
 
 def input_status(q0, p0, h):

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._composition import _is_symmetric_rule
-from ._march import compensated_add, march, solve_element
+from ._march import compensated_add, march, solve_element, time_reversed
 from ._quadrature import QuadratureRule
 from ._solve import Status
 
@@ -65,17 +65,11 @@ def check_reversible(method, *, controller=None, save_at=None, events=None, dens
                              "(points and weights), so its step with -h does not undo its step with h.")
 
 
-@functools.lru_cache(maxsize=None)
-def negated(H):
-    """-H: its element with step h is H's element with step -h (one function per H)."""
-    return lambda q, p, *args: -H(q, p, *args)
-
-
 def back_step(method, H, z, comp, h, args, options):
-    """One element of step -h from z (``negated``), Kahan-compensated (``compensated_add``):
+    """One element of step -h from z (``_march.time_reversed``), Kahan-compensated (``compensated_add``):
     ``(z_prev, comp, status)``, z_prev = Phi_{-h}(z), the previous node of a symmetric method."""
     d = z.shape[0] // 2
-    q, p, _, _, status = solve_element(method, negated(H), z[:d], z[d:], h, args, options)
+    q, p, _, _, status = solve_element(method, time_reversed(H), z[:d], z[d:], h, args, options)
     z_prev, comp = compensated_add(z, jnp.concatenate([q, p]) - z, comp)
     return z_prev, comp, status
 
@@ -94,12 +88,6 @@ def rebuild(method, H, z_end, h, args, options, n):
 
 def _inexact(tree):
     return [jnp.issubdtype(jnp.result_type(x), jnp.inexact) for x in jax.tree.leaves(tree)]
-
-
-def _zero_cotangent(tree):
-    """Zeros for the inexact leaves, float0 for the others (integer args, ...)."""
-    return jax.tree.map(lambda x: jnp.zeros_like(x) if jnp.issubdtype(jnp.result_type(x), jnp.inexact)
-                        else np.zeros(np.shape(x), jax.dtypes.float0), tree)
 
 
 def _element_vjp(method, H, z, h, args, options, lam):
