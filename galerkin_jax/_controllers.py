@@ -46,30 +46,30 @@ class PIDController:
     over tolerances.
 
     Args:
-        rtol: relative tolerance on the embedded estimate, > 0. The true local error of a
-            superconvergent method (cG(k): order 2k + 1) lies below it.
-        atol: absolute tolerance on the embedded estimate, > 0.
-        pcoeff: proportional coefficient (the default is I control).
-        icoeff: integral coefficient.
-        dcoeff: derivative coefficient.
-        dtmin: smallest step; a step rejected at dtmin ends the run with status DTMIN (default 0:
-            the run ends where h falls to the round-off of t), unless ``force_dtmin``.
-        dtmax: largest step (default inf).
-        safety: factor < 1 on the predicted optimal h.
-        factormin: least factor by which h changes per step.
-        factormax: largest factor by which h changes per step.
-        failfactor: the factor on h after a failed solve (at least ``factormin``): 0.5 halves h,
-            as Radau5 does after a Newton failure (Hairer and Wanner, Sec. IV.8); diffrax cuts by
+        rtol: relative tolerance on the embedded estimate, > 0 (required). The true local error
+            of a superconvergent method (cG(k): order 2k + 1) lies below it.
+        atol: absolute tolerance on the embedded estimate, > 0 (required).
+        pcoeff: proportional coefficient; default 0 (with the defaults below: I control).
+        icoeff: integral coefficient; default 1.
+        dcoeff: derivative coefficient; default 0.
+        dtmin: smallest step; default 0 (the run ends where h falls to the round-off of t). A step
+            rejected at dtmin ends the run with status DTMIN, unless ``force_dtmin``.
+        dtmax: largest step; default inf.
+        safety: factor < 1 on the predicted optimal h; default 0.9.
+        factormin: least factor by which h changes per step; default 0.2.
+        factormax: largest factor by which h changes per step; default 10.
+        failfactor: the factor on h after a failed solve; default 0.5 (at least ``factormin``):
+            it halves h, as Radau5 does after a Newton failure (Hairer and Wanner, Sec. IV.8); diffrax cuts by
             ``factormin``. A failed solve says the step was too long for the solve, not by how
             much: a cut by 0.2 leaves the estimate so small that the controller grows h about
             four times and fails again (docs/adaptive.md, "What goes wrong at loose
             tolerances").
-        predictive: bound the factor by Gustafsson's predictive controller (above); False (with
-            ``failfactor=factormin``) gives diffrax's controller. Static.
-        force_dtmin: accept a step of h <= dtmin whose error exceeds the tolerance, as diffrax's
-            ``force_dtmin=True`` does, and go on at dtmin; the status stays SUCCESS, and
-            ``error_estimate`` shows the error such steps made. A failed solve is not accepted
-            (status DTMIN there). Default False: such a step ends the run (DTMIN). Static.
+        predictive: bound the factor by Gustafsson's predictive controller (above); default
+            True. False (with ``failfactor=factormin``) gives diffrax's controller. Static.
+        force_dtmin: accept a step of h <= dtmin whose error exceeds the tolerance and go on at
+            dtmin, as diffrax's ``force_dtmin=True`` does; default False (such a step ends the run,
+            DTMIN). The status stays SUCCESS, and ``error_estimate`` shows the error such steps
+            made; a failed solve is not accepted (status DTMIN there). Static.
 
     Raises:
         ValueError: at construction, for a concrete value out of its range (``BOUNDS``: rtol,
@@ -275,11 +275,12 @@ class TimeTransform:
     (module docstring) with dt/dtau = s(q, p) and the constant step h in tau.
 
     Args:
-        s: ``s(q, p) -> scalar > 0``, the step density (small where the motion is fast), with
-            q and p in the state's own shape, or ``s(q, p, args)`` when ``args`` is passed; None: ``default_step_density``. A
-            non-positive or non-finite s inside a run ends it with status TIME_TRANSFORM.
-        s_max: the default density's largest value, > 1: steps in t at most ``s_max`` h where
-            Hamilton's field vanishes (None: 3; ``float("inf")``: unbounded, the density
+        s: the step density ``s(q, p) -> scalar > 0``, small where the motion is fast; default
+            None (``default_step_density``). Called with q and p in the state's own shape, or as
+            ``s(q, p, args)`` when ``args`` is passed. A non-positive or non-finite s inside a run
+            ends it with status TIME_TRANSFORM.
+        s_max: the default density's largest value, > 1; default None (3): steps in t at most
+            ``s_max`` h where Hamilton's field vanishes (``float("inf")``: unbounded, the density
             (|F(z0)| / |F(z)|)^(3/4), which fails where F vanishes). With the default s only.
             Static.
 
