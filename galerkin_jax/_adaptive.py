@@ -397,7 +397,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
             new["node_z"] = c["node_z"].at[n + 1].set(end["z"], mode="drop")
         if dense is True:
             if events is not None and any(event.terminal for event in events):
-                W_fine = jnp.where(hit, _output.truncated(W_fine, at), W_fine)
+                W_fine = jax.lax.cond(hit, _output.truncated, lambda W, _: W, W_fine, at)  # the element that ends
             new["W"] = c["W"].at[n].set(W_fine, mode="drop")
         local = jnp.nan
         if estimate == "full":
