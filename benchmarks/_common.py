@@ -1,9 +1,11 @@
 """Timing and result-writing helpers shared by the benchmarks."""
 
 import contextlib
+import datetime
 import json
 import pathlib
 import platform
+import subprocess
 import sys
 import time
 import timeit
@@ -25,11 +27,26 @@ def timed(fn, *args, repeat=5):
     return compile_s, run_s
 
 
+def _commit():
+    """The git commit of the tree the benchmark ran on ("+" where it had uncommitted changes)."""
+    here = pathlib.Path(__file__).parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True,
+                              timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return (head + ("+" if dirty else "")) or None
+
+
 def machine():
     with open("/proc/loadavg") as f:
         load = f.read().split()[:3]
     return {
         "command": " ".join(["python"] + sys.argv),
+        "commit": _commit(),
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "processor": platform.processor() or platform.machine(),
         "python": platform.python_version(),
         "jax": jax.__version__,
