@@ -4,7 +4,7 @@ and the round-off of the states the reversible pass rebuilds (issue 45, item 3).
 
     python benchmarks/bench_reversible_gradient.py [--ns 1000 10000 100000]
 
-Not to be confused with bench_reversible.py (reversible step-size control, issue 22).
+Not to be confused with bench_reversible.py (a study at 1632fa2) (reversible step-size control, issue 22).
 
 Problem: Kepler, H = |p|^2 / 2 - 1 / |q|, q0 = (1, 0), p0 = (0, 1.2) (e = 0.44, period
 ~ 8.2), the midpoint rule cG(1) + Gauss 1, h = 0.01; loss |q_N|^2 + sum p_N, its gradient

@@ -191,7 +191,7 @@ def test_the_levers_of_issue_44_save_updates_at_large_h_and_reach_the_same_root(
     ``sweep_dimension=1``) 4.12 and 4.80 (measured), and both end within 3.3e-14 of the default's
     state (|z| ~ 1; asserted 1e-12: round-offs of 400 elements). Neither is the default: fewer
     updates, not less time (docs/solver.md, "Fewer updates: the levers of issue 44, measured";
-    ``benchmarks/bench_iterations.py``)."""
+    ``bench_iterations.py`` (a study at 1632fa2))."""
     method = gj.CG(k, gj.gauss_legendre(k))
     runs = {name: gj.integrate(KEPLER.H, KEPLER.q0, KEPLER.p0, method=method, h=h, n_steps=400, solver=solver)
             for name, solver in (("default", gj.SolverOptions()), ("newton", gj.SolverOptions(theta_fixed_point=1e-12)),
