@@ -84,7 +84,8 @@ class Splitting(AbstractMethod):
         "blanes_moan_rkn4": order 4 where T is quadratic in p, SRKN_6^b [Blanes & Moan 2002], 6 forces.
         "blanes_moan_rkn6": order 6 where T is quadratic in p, SRKN_11^b [Blanes & Moan 2002], 11 forces.
     The RKN schemes keep their symplecticity and symmetry on any separable H, but on a T
-    that is not quadratic (e.g. relativistic) their order falls to 2.
+    that is not quadratic their order may fall: with T = sum sqrt(1 + p^2) SRKN_11^b
+    measures 4, SRKN_6^b still 4 (``tests/test_splitting.py``).
 
     H must be separable as ``gj.structure`` reads it (a ValueError otherwise), and the steps
     fixed or saved at given times: a ``PIDController`` is refused (its estimate measures the
