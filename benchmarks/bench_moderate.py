@@ -15,7 +15,9 @@ next one's first step the mean step of the last, the first's 1e-3 T / 10).
 
 The solvers: galerkin_jax cG(k) + Gauss k (k = 3, 4, 6) at fixed steps, cG(4), cG(6) with a
 PIDController (rtol = atol), and cG(3), cG(4) at fixed steps iterating to 1e-10 of the unknowns
-instead of their round-off (``SolverOptions(tolerance=1e-10)``); diffrax Tsit5 and Dopri8,
+instead of their round-off (``SolverOptions(tolerance=1e-10)``); on the separable systems its
+explicit elements (``EXPLICIT``): Stormer-Verlet (``GalerkinVI(1, trapezoid)``), McLachlan's and
+Kahan and Li's compositions of it and Blanes and Moan's RKN splittings; diffrax Tsit5 and Dopri8,
 fixed steps and PID (rtol = atol); velocity Verlet and Yoshida's fourth-order triple jump of it
 (separable systems), the implicit midpoint rule (fixed-point iteration to round-off) and its
 triple jump (the chain, where no explicit symplectic splitting applies), written here in plain
@@ -220,6 +222,61 @@ def cg_pid(k):
     return make
 
 
+def explicit_fixed(method, forces):
+    """An explicit element of galerkin_jax (``gj.structure`` finds every separable system
+    separable): a composition of Stormer-Verlet (``GalerkinVI(1, trapezoid)``) or a
+    ``Splitting``, at ``n = SAVES * m`` fixed steps, every m-th state saved: ``integrate(...,
+    n_steps=n, save_every=m)``, a static knob. Evaluations: ``forces`` gradients of V a step."""
+
+    def build(system, m):
+        n = SAVES * m
+
+        def run(q0, p0):
+            sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=m,
+                               error_estimate=False)
+            steps = sol.stats["num_accepted_steps"]
+            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, forces * steps, sol.stats["num_newton_iterations"]))
+
+        return run
+
+    return build
+
+
+def explicit_search(method, forces):
+    """The search's stand-in for ``explicit_fixed``, compiled once (m traced): ``gj.step`` in a
+    ``fori_loop``, the same elements (the force at each element's start computed again, which
+    the scan hands on: not timed, see ``choose_finals``)."""
+
+    def make(system):
+        span = system.T / SAVES
+
+        def run(q0, p0, m):
+            h = span / m
+
+            def step_segment(q, p, c):
+                q, p = jax.lax.fori_loop(0, m, lambda _, s: gj.step(system.H, *s, method=method, h=h), (q, p))
+                status = jnp.where(jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(p)), 0, 1)
+                return q, p, c, counts(status, m, 0, forces * m)
+
+            return segments(step_segment, q0, p0, jnp.zeros((), q0.dtype))
+
+        return run
+
+    return make
+
+
+# galerkin_jax's explicit candidates on separable H: (label, method, order, forces a step, start)
+VERLET = gj.GalerkinVI(1, gj.trapezoid())
+EXPLICIT = [
+    ("GalerkinVI(1, trapezoid) (Verlet)", VERLET, 2, 1, 0.125),
+    ("Composition mclachlan4 of Verlet", gj.Composition(VERLET, "mclachlan4"), 4, 5, 0.5),
+    ("Splitting blanes_moan_rkn4", gj.Splitting("blanes_moan_rkn4"), 4, 6, 0.5),
+    ("Composition mclachlan6 of Verlet", gj.Composition(VERLET, "mclachlan6"), 6, 9, 1.0),
+    ("Splitting blanes_moan_rkn6", gj.Splitting("blanes_moan_rkn6"), 6, 11, 1.0),
+    ("Composition kahan_li8 of Verlet", gj.Composition(VERLET, "kahan_li8"), 8, 15, 1.5),
+]
+
+
 # diffrax
 
 DIFFRAX_STAGES = {"Tsit5": 6, "Dopri8": 12}  # new field evaluations per attempt (first same as last)
@@ -405,9 +462,11 @@ def solver_list(quick):
         Solver("midpoint triple jump (order 4)", False, "steps", 4, midpoint(TRIPLE_JUMP), 0.5,
                applies=non_separable),
     ]
+    explicit = [Solver(label, True, "steps", order, explicit_search(method, forces), start, applies=separable,
+                       final=explicit_fixed(method, forces)) for label, method, order, forces, start in EXPLICIT]
     if quick:
-        return [cg[1], pid[1]] + named_peers
-    return cg + pid + loose + named_peers
+        return [cg[1], pid[1]] + explicit + named_peers
+    return cg + pid + loose + explicit + named_peers
 
 
 SCALE_STEP = 0.05  # h0 of ``Solver.start``: a step that resolves every system's motion
@@ -593,10 +652,13 @@ def choose_finals(result, probes):
     """Which of galerkin_jax's fixed-step solvers get their timed run (a compilation each) at a
     level: those whose search run there took at most FINAL_MARGIN times the fastest one's (the
     search's while loop costs 1.4-1.8x the timed scan, alike for every k). The others keep the
-    search's run, marked ``search_only``, and do not enter the comparison."""
+    search's run, marked ``search_only``, and do not enter the comparison. The explicit elements
+    (``EXPLICIT``, whose stand-in is another loop) are all timed."""
+    explicit = {label for label, *_ in EXPLICIT}
     for level in (f"{x:.0e}" for x in LEVELS):
         entries = {name: r["levels"][level] for name, r in result["solvers"].items()
-                   if probes[name].solver.final is not None and r["levels"][level]["index"] is not None}
+                   if probes[name].solver.final is not None and r["levels"][level]["index"] is not None
+                   and name not in explicit}
         if not entries:
             continue
         first = {name: probes[name](e["index"])["first_s"] for name, e in entries.items()}

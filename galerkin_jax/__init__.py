@@ -15,6 +15,7 @@ from ._controllers import (
 )
 from ._output import DenseOutput as DenseOutput
 from ._composition import Composition as Composition
+from ._splitting import Splitting as Splitting
 from ._structure import Structure as Structure, structure as structure
 from ._galerkin import CG as CG, DG as DG
 from ._method import AbstractMethod as AbstractMethod
@@ -72,6 +73,7 @@ __all__ = [
     "Solution",
     "SolverError",
     "SolverOptions",
+    "Splitting",
     "Status",
     "Structure",
     "SweepResult",

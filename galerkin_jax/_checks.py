@@ -152,11 +152,18 @@ def _combine(*terms):
 
 
 def check_premise(method, H, q0, p0):
-    """Checks that a method's assumption about H holds (ModifiedMidpoint: a central force)."""
+    """Checks that a method's assumption about H holds (ModifiedMidpoint: a central force), and
+    the ``premise(H, q0, p0)`` of the method and of the methods it wraps (``method.method``;
+    ``Splitting``: H separable)."""
     from ._midpoint import ModifiedMidpoint  # here: _midpoint's lead-edited imports may grow
 
     if isinstance(method, ModifiedMidpoint):
         check_central_force(H, q0, p0)
+    while method is not None:
+        premise = getattr(method, "premise", None)
+        if callable(premise):
+            premise(H, q0, p0)
+        method = getattr(method, "method", None)
 
 
 def check_sweep(H, configs, n_steps, save_every, invariants, reference):

@@ -2,7 +2,10 @@
 
 A method spec is ``KIND[DEGREE][:RULE[POINTS]]``: ``cg3:gauss3`` is cG(3) with the 3-point
 Gauss-Legendre rule, ``dg1:lobatto3`` dG(1) with 3 Gauss-Lobatto points, ``mm`` the modified
-midpoint rule. A scene is a built-in name from ``scenes.SCENES`` or a Python file.
+midpoint rule, ``verlet`` Stormer-Verlet (``vi1:trapezoid``); ``SCHEME@SPEC`` the composition
+``SCHEME`` of the method ``SPEC`` (``kahan_li6@verlet``), ``split:SCHEME`` a splitting for
+separable H (``split:blanes_moan_rkn6``). A scene is a built-in name from ``scenes.SCENES`` or
+a Python file.
 """
 
 import dataclasses
@@ -17,6 +20,8 @@ import numpy as np
 import galerkin_jax as gj
 
 from . import _checks, scenes
+from ._composition import SCHEMES as COMPOSITIONS
+from ._splitting import SCHEMES as SPLITTINGS
 
 EXIT_BAD_INPUT, EXIT_BAD_OPTION = 1, 2
 
@@ -87,10 +92,20 @@ DEFAULT_DEGREE = 3
 class MethodSpec:
     """A method as the user names it; ``None`` fields take their defaults in ``complete``."""
 
-    kind: str
+    kind: str  # a key of KINDS, or "comp" (a composition) or "split" (a splitting)
     degree: Optional[int] = None
     rule: Optional[str] = None
     points: Optional[int] = None
+    scheme: Optional[str] = None  # of a composition or a splitting
+    inner: Optional["MethodSpec"] = None  # the method a composition composes
+
+
+def _scheme(text, schemes, what):
+    key = text.strip().lower()
+    if key not in schemes:
+        raise CliError(f"unknown {what} scheme {text!r}{_suggest(key, list(schemes))}; choose one of "
+                       f"{', '.join(schemes)}.", EXIT_BAD_OPTION)
+    return key
 
 
 def kind_key(text):
@@ -114,7 +129,17 @@ def rule_key(text):
 
 
 def parse_spec(text):
-    """``"cg2:gauss3"`` -> ``MethodSpec("cg", 2, "gauss", 3)``; parts left out stay None."""
+    """``"cg2:gauss3"`` -> ``MethodSpec("cg", 2, "gauss", 3)``; parts left out stay None.
+    ``"SCHEME@SPEC"``: the composition (its SPEC completed); ``"split[:SCHEME]"``: a splitting
+    (default blanes_moan4); ``"verlet"``: ``vi1:trapezoid``."""
+    if "@" in text:
+        scheme, inner = text.split("@", 1)
+        return MethodSpec("comp", scheme=_scheme(scheme, COMPOSITIONS, "composition"), inner=complete(parse_spec(inner)))
+    split = re.fullmatch(r"\s*split(?:ting)?(?::([a-z0-9_]+))?\s*", text.lower())
+    if split:
+        return MethodSpec("split", scheme=_scheme(split.group(1) or "blanes_moan4", SPLITTINGS, "splitting"))
+    if text.strip().lower() == "verlet":
+        text = "vi1:trapezoid"
     match = re.fullmatch(r"\s*([a-z_]+?)(\d*)(?::([a-z_-]+?)(\d*))?\s*", text.lower())
     if match is None:
         raise CliError(f"cannot read the method {text!r}; write KIND[DEGREE][:RULE[POINTS]], e.g. cg2:gauss3 or mm.",
@@ -136,6 +161,8 @@ def complete(spec):
     """Fill the defaults: degree 3, the Gauss-Legendre rule with k points for cG and the
     VIs (Gauss collocation, symplectic) and k + 1 otherwise; fixed rules keep their size.
     A spec that names no method raises ``CliError`` with exit status 2 (a bad option)."""
+    if spec.kind in ("comp", "split"):
+        return spec
     kind = KINDS[spec.kind]
     if kind.least_degree is None:
         if spec.degree is not None or spec.rule is not None or spec.points is not None:
@@ -156,6 +183,10 @@ def complete(spec):
 
 def build(spec):
     """The method object of a completed spec."""
+    if spec.kind == "comp":
+        return gj.Composition(build(spec.inner), spec.scheme)
+    if spec.kind == "split":
+        return gj.Splitting(spec.scheme)
     kind = KINDS[spec.kind]
     if kind.least_degree is None:
         return kind.make()
@@ -164,6 +195,10 @@ def build(spec):
 
 def label(spec):
     """Short name, e.g. ``cG(3)``."""
+    if spec.kind == "comp":
+        return f"{spec.scheme}({short(spec.inner)})"
+    if spec.kind == "split":
+        return f"Splitting {spec.scheme}"
     name = KINDS[spec.kind].name
     return name if spec.degree is None else f"{name}({spec.degree})"
 
@@ -177,12 +212,22 @@ def rule_words(spec):
 def describe(spec):
     """The method in words, e.g. ``cG(3): continuous Galerkin, degree 3 [GBS, eq. (16)], 3-point
     Gauss-Legendre rule``."""
+    if spec.kind == "comp":
+        order = COMPOSITIONS[spec.scheme][0]
+        return (f"{label(spec)}: the symmetric composition {spec.scheme} (order {order} on a symmetric method of "
+                f"order 2) of {describe(spec.inner)}")
+    if spec.kind == "split":
+        order, _, _, nystrom = SPLITTINGS[spec.scheme]
+        return (f"{label(spec)}: splitting for separable H = T(p) + V(q), order {order}"
+                + (" where T is quadratic in p" if nystrom else "") + " [Blanes & Moan 2002]")
     words = KINDS[spec.kind].words.format(k=spec.degree)
     return f"{label(spec)}: {words}" + (f", {rule_words(spec)}" if spec.rule else "")
 
 
 def short(spec):
     """One table cell, e.g. ``cG(2) Gauss-Lobatto 3``."""
+    if spec.kind in ("comp", "split"):
+        return label(spec)
     if spec.rule is None:
         return label(spec)
     rule = RULES[spec.rule]
@@ -191,6 +236,10 @@ def short(spec):
 
 def tag(spec):
     """For file names, e.g. ``cG3-gauss3``."""
+    if spec.kind == "comp":
+        return f"{spec.scheme}-{tag(spec.inner)}"
+    if spec.kind == "split":
+        return f"split-{spec.scheme}"
     if spec.rule is None:
         return KINDS[spec.kind].name
     points = "" if RULES[spec.rule].fixed else spec.points

@@ -37,6 +37,8 @@ HINTS = {
     "dgrad": ("the energy is conserved to round-off", {"round-off"}),
 }
 HINTS["lvi"] = HINTS["vi"]
+HINTS["split"] = ("a splitting method is symplectic: the energy error oscillates and does not drift",
+                  {"round-off", "bounded"})
 # the symplectic methods, as their hints name them: what a step rule does to that structure
 SYMPLECTIC = {"cg_gauss": "cG(k) with k Gauss points is Gauss collocation, a symplectic method",
               "vi": "a variational integrator is symplectic", "lvi": "a variational integrator is symplectic"}
@@ -54,7 +56,10 @@ TIME_TRANSFORMED_DGRAD = ("the time transformation hands the method K = s (H + p
 
 def _hint(spec, controller=None):
     """``(words, verdicts that agree)`` for the method of ``spec`` under ``controller`` (None:
-    fixed steps, "pid" or "time-transform")."""
+    fixed steps, "pid" or "time-transform"). A composition's is its method's: a composition of
+    symplectic (energy-conserving) steps is symplectic (energy-conserving)."""
+    if spec.kind == "comp":
+        return _hint(spec.inner, controller)
     gauss = spec.kind == "cg" and spec.rule == "gauss" and spec.points == spec.degree
     key = "cg_gauss" if gauss else spec.kind
     if controller in UNDER_CONTROL and key in SYMPLECTIC:

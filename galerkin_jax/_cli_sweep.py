@@ -19,8 +19,8 @@ def groups(method_specs):
     """The specs grouped by kind and degree, in order of first appearance: ``gj.grid`` stacks
     methods of one kind and degree (rules of any size) into one batch."""
     grouped = {}
-    for spec in method_specs:
-        grouped.setdefault((spec.kind, spec.degree), []).append(spec)
+    for spec in method_specs:  # compositions and splittings: one per scheme (a static field)
+        grouped.setdefault(spec if spec.kind in ("comp", "split") else (spec.kind, spec.degree), []).append(spec)
     return list(grouped.values())
 
 

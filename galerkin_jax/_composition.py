@@ -44,6 +44,9 @@ SCHEMES = {
     # nine stages, s9odr6a [Kahan & Li 1997, Math. Comp. 66, 1089-1099]; HLW eq. (V.3.11), "p6 s9"
     "kahan_li6": (6, _symmetric([0.39216144400731413927925056, 0.33259913678935943859974864,
                                  -0.70624617255763935980996482, 0.08221359629355080023149045])),
+    # nine stages, gamma_1 = 0.1867 [McLachlan 1995, SIAM J. Sci. Comput. 16, 151-168, order 6, m = 9]
+    "mclachlan6": (6, _symmetric([0.1867, 0.55549702371247839916, 0.12946694891347535806,
+                                  -0.84326562338773460855])),
     # fifteen stages, s15odr8 [Kahan & Li 1997]; HLW eq. (V.3.12), "p8 s15"
     "kahan_li8": (8, _symmetric([0.74167036435061295344822780, -0.40910082580003159399730010,
                                  0.19075471029623837995387626, -0.57386247111608226665638773,
@@ -54,12 +57,25 @@ SCHEMES = {
                                      -0.38947496264484728640807860, 0.15884190655515560089621075,
                                      -0.39590389413323757733623154, 0.18453964097831570709183254,
                                      0.25837438768632204729397911, 0.29501172360931029887096624])),
+    # seventeen stages [McLachlan 1995, order 8, m = 17] (his m = 15 one is Kahan and Li's s15odr8)
+    "mclachlan8": (8, _symmetric([0.12886597938144329897, 0.5815140871052509624, -0.41017537146985013753,
+                                  0.1851469357165877327, -0.40955234342085141934, 0.14440594108001204106,
+                                  0.27833550039367965131, 0.31495668391629485789])),
 }
 
 # a Hermite cubic on [0, 1] in the Legendre basis: rows the coefficients of P_0 .. P_3 of
 # alpha -> H10(alpha), H01(alpha), H11(alpha), the weights of h f(z0), dz, h f(z1)
 _HERMITE = np.stack([np.polynomial.legendre.poly2leg(np.polynomial.Polynomial(c)(
     np.polynomial.Polynomial([0.5, 0.5])).coef) for c in ([0, 1, -2, 1], [0, 0, 3, -2], [0, 0, -1, 1])], axis=1)
+
+
+def hermite_polynomial(H, q0, p0, dq, dp, h):
+    """The Hermite cubic through (z0, h f(z0)) and (z1, h f(z1)), z1 = z0 + (dq, dp), f
+    Hamilton's field: Legendre coefficients, shape ``(4, 2d)`` (the element polynomial of a
+    method whose stages are not polynomials: compositions, splittings)."""
+    field = hamilton_field(H)
+    columns = jnp.stack([h * field(q0, p0), jnp.concatenate([dq, dp]), h * field(q0 + dq, p0 + dp)])
+    return jnp.asarray(_HERMITE, q0.dtype) @ columns
 
 
 def _is_symmetric_rule(rule):
@@ -105,9 +121,13 @@ class Composition(AbstractMethod):
         "mclachlan4": order 4, 5 stages, gamma_1 = 0.28 [McLachlan 1995].
         "yoshida6": order 6, 7 stages [Yoshida 1990, Table 1, A].
         "kahan_li6": order 6, 9 stages, s9odr6a [Kahan & Li 1997].
+        "mclachlan6": order 6, 9 stages, gamma_1 = 0.1867 [McLachlan 1995].
         "kahan_li8": order 8, 15 stages, s15odr8 [Kahan & Li 1997].
         "kahan_li8_s17": order 8, 17 stages, s17odr8b [Kahan & Li 1997].
-    All as listed in Hairer, Lubich, Wanner, Geometric Numerical Integration (2006), Sec. V.3.2.
+        "mclachlan8": order 8, 17 stages [McLachlan 1995].
+    Kahan and Li's as listed in Hairer, Lubich, Wanner, Geometric Numerical Integration (2006),
+    Sec. V.3.2; McLachlan's as tabulated in Principia's integrators (McLachlan1995SS9, SS17), checked by the
+    measured order.
 
     The element polynomial (dense output, ``save_at``, events, the error estimate) is the
     Hermite cubic through the end states with Hamilton's field there (local order 4; the
@@ -183,12 +203,8 @@ class Composition(AbstractMethod):
         return q - q0, p - p0
 
     def polynomial(self, H, q0, p0, Z, h):
-        """The Hermite cubic through (z0, h f(z0)) and (z1, h f(z1)), f Hamilton's field:
-        Legendre coefficients, shape ``(4, 2d)``."""
-        dq, dp = self.increment(H, q0, p0, Z, h)
-        field = hamilton_field(H)
-        columns = jnp.stack([h * field(q0, p0), jnp.concatenate([dq, dp]), h * field(q0 + dq, p0 + dp)])
-        return jnp.asarray(_HERMITE, Z.dtype) @ columns
+        """The Hermite cubic through the end states (``hermite_polynomial``)."""
+        return hermite_polynomial(H, q0, p0, *self.increment(H, q0, p0, Z, h), h)
 
     @property
     def explicit(self):

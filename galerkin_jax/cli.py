@@ -42,7 +42,12 @@ body's position), and L(q, qdot) for LagrangianVI). q0 and p0 may have the shape
 
 A method is KIND[DEGREE][:RULE[POINTS]]: KIND is cg, dg, vi (GalerkinVI), lvi
 (LagrangianVI), mm (ModifiedMidpoint) or dgrad (DiscreteGradient); RULE is gauss
-(Gauss-Legendre), lobatto, radau, midpoint or trapezoid. Examples: cg3:gauss3, dg1:lobatto3, mm.
+(Gauss-Legendre), lobatto, radau, midpoint or trapezoid. Examples: cg3:gauss3, dg1:lobatto3, mm;
+verlet is vi1:trapezoid (Stormer-Verlet). SCHEME@METHOD composes a symmetric method
+(SCHEME: yoshida4, suzuki4, mclachlan4, yoshida6, kahan_li6, mclachlan6, kahan_li8,
+kahan_li8_s17, mclachlan8), e.g. kahan_li6@verlet, yoshida4@cg1:gauss1; split:SCHEME is a
+splitting for separable H (leapfrog, blanes_moan4, blanes_moan6, blanes_moan_rkn4,
+blanes_moan_rkn6), e.g. split:blanes_moan_rkn6. See docs/which-method.md.
 
 exit status: 0 success, 1 bad input, 2 bad option, 3 an implicit solve failed.
 """
@@ -51,6 +56,7 @@ examples:
   galerkin-jax run                                  Kepler, cG(3) with 3 Gauss points
   galerkin-jax run quartic --method mm --steps 2000
   galerkin-jax run my_scene.py --method dG --degree 1 --rule lobatto --points 3 --format csv
+  galerkin-jax run fput --method kahan_li6@verlet    explicit: FPUT's H is separable
   galerkin-jax sweep kepler --methods cg2:gauss2,cg2:gauss4,mm --step-sizes 0.1,0.05,0.02
   galerkin-jax reproduce --quick
 """
@@ -232,6 +238,11 @@ def _method_spec(options):
     """The spec of ``--method``, with ``--degree``, ``--rule`` and ``--points`` taking precedence."""
     try:
         spec = specs.parse_spec(options.method)
+        if spec.kind in ("comp", "split"):
+            if (options.degree, options.rule, options.points) != (None, None, None):
+                raise CliError(f"{specs.label(spec)} takes no --degree, --rule or --points (a composition's are "
+                               "written in its spec, e.g. kahan_li6@cg1:gauss1).", EXIT_BAD_OPTION)
+            return spec
         pick = lambda option, default: default if option is None else option
         rule = None if options.rule is None else specs.rule_key(options.rule)
         return specs.complete(specs.MethodSpec(spec.kind, pick(options.degree, spec.degree), pick(rule, spec.rule),
