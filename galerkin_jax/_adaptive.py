@@ -362,7 +362,10 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         solved = (status == Status.SUCCESS) & jnp.all(jnp.isfinite(z1))
         status = jnp.where((status == Status.SUCCESS) & ~solved, Status.NONFINITE, status)
         # the embedded estimate, shared by the step rule and the run's estimate (``peak_update``)
-        embedded = embedded_error(H_bound, q, p, W, h) if pid or estimate is True else None
+        # an explicit element's force at its end (``_explicit``) where the estimate only ranks
+        # elements; a controller's steps take the field evaluated anew, as an iterated run's
+        field = method.explicit_field(H_bound, *jnp.split(z1, 2), memo) if explicit and not pid else None
+        embedded = embedded_error(H_bound, q, p, W, h, field) if pid or estimate is True else None
         step = dict(z=z, z1=z1, W=W, h=h, t=t, t1=t1, last=last, solved=solved, status=status, embedded=embedded)
         verdict = rule(c, step)
         accept, finished = verdict["accept"] & active, verdict["finished"]

@@ -66,6 +66,10 @@ class ExplicitVI(AbstractMethod):
         """g(q0) = -dH/dq at the start of a run, the force the first element reuses."""
         return -jax.grad(H, argnums=0)(q0, p0)
 
+    def explicit_field(self, H, q1, p1, memo):
+        """F(z1) at the end of an element whose memo is ``memo`` (``end_field``)."""
+        return end_field(H, q1, p1, memo)
+
     def explicit(self, H, q0, p0, h, g0):
         """The element from the force ``g0 = g(q0)``: ``(Z, (dq, dp), g(q1))``."""
         w = jnp.asarray(self.method.quadrature.weights, q0.dtype)
@@ -76,6 +80,12 @@ class ExplicitVI(AbstractMethod):
         g1 = -jax.grad(H, argnums=0)(q0 + c, P)  # -V'(q1): reads no p
         Z = jnp.stack([c, mu])  # GalerkinVI's unknowns (c_0 | mu_0)
         return Z, (c, h * (W0 * g0 + W1 * g1)), g1
+
+
+def end_field(H, q1, p1, g1):
+    """Hamilton's field at an element's end, F(z1) = (T'(p1), g(q1)), from the force g1 = g(q1)
+    that the element computed (its memo): one gradient of T, none of V."""
+    return jnp.concatenate([jax.grad(H, argnums=1)(q1, p1), g1])
 
 
 def endpoint_indices(rule):

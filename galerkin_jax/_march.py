@@ -178,11 +178,12 @@ def peak_start(q0, p0, Z0, h):
                 h=stack(jnp.asarray(h, q0.dtype)))
 
 
-def embedded_size(method, H_bound, q, p, Z, h):
+def embedded_size(method, H_bound, q, p, Z, h, field=None):
     """The largest entry of an element's embedded estimate (``embedded_error``, one evaluation of
-    Hamilton's field), a number to rank elements by, not a function to differentiate."""
-    q, p, Z, h = jax.lax.stop_gradient((q, p, Z, h))
-    return jnp.max(jnp.abs(embedded_error(H_bound, q, p, method.polynomial(H_bound, q, p, Z, h), h)))
+    Hamilton's field, or none where ``field``, F at the element's end, is given), a number to
+    rank elements by, not a function to differentiate."""
+    q, p, Z, h, field = jax.lax.stop_gradient((q, p, Z, h, field))
+    return jnp.max(jnp.abs(embedded_error(H_bound, q, p, method.polynomial(H_bound, q, p, Z, h), h, field)))
 
 
 def peak_update(peak, size, q, p, Z, h, ok):
@@ -266,7 +267,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         idle = jnp.zeros((), bool) if n_active is None else done >= n_active
         return h_el, idle
 
-    def extras(c, new, q, p, Z, h_el, z, z1, ok, idle):
+    def extras(c, new, q, p, Z, h_el, z, z1, ok, idle, field=None):
         """What a run asks for beyond the state: the estimate, the diagnostics, the idling of a
         member past t1, the progress bar and the dense output."""
         full = estimate == "full"
@@ -277,7 +278,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         if observe is not None:
             new["acc"] = observe(c["acc"], *split(state(new)))
         if estimate is True:
-            size = embedded_size(method, H_bound, q, p, Z, h_el)
+            size = embedded_size(method, H_bound, q, p, Z, h_el, None if field is None else field())
             new["peak"] = peak_update(c["peak"], size, q, p, Z, h_el, ok & ~idle)
         if n_active is not None:
             new = jax.tree.map(lambda a, b: jnp.where(idle, a, b), dict(c, done=c["done"] + 1), new)
@@ -302,7 +303,8 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         new = dict(c, q=q1, p=p1, memo=memo, steps=c["steps"] + ok, done=c["done"] + 1,
                    status=jnp.where(ok | failed, c["status"], Status.NONFINITE).astype(jnp.int32))
         z = jnp.concatenate([q, p]) if dense else None
-        return extras(c, new, q, p, Z, h_el, z, jnp.concatenate([q1, p1]) if dense else None, ok, idle)
+        return extras(c, new, q, p, Z, h_el, z, jnp.concatenate([q1, p1]) if dense else None, ok, idle,
+                      field=lambda: method.explicit_field(H_bound, q1, p1, memo))
 
     def element(c):
         z, counters = c["z"], c["counters"]
