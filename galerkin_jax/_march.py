@@ -6,7 +6,10 @@ a batch runs exactly the code of a single run (the root finder in ``_solve`` fol
 axes into its own batch axis). The carry holds the state with the compensation of its
 summation (Kahan: the increments of many small elements are added without losing their
 low bits, so round-off grows like sqrt(n)), the predictor's history, the iteration matrix,
-the first failure's status, Newton counts and the largest local error estimate.
+the first failure's status, Newton counts and the largest local error estimate. An element
+in closed form (``_explicit``) carries only what it needs: the state, summed plainly (one
+element's rounding is the plain scheme's; docs/performance.md, "Explicit elements"), the
+force it hands the next element, and its counts (``explicit_start``).
 """
 
 import functools
