@@ -28,6 +28,7 @@ import jax.numpy as jnp
 from . import _output
 from ._controllers import PIDController, TimeTransform, embedded_error, poincare, scaled_error
 from ._defect import symplectic_field
+from ._explicit import is_explicit
 from ._march import (bind_args, compensated_add, continued, element_residual, input_status, peak_estimate, peak_start,
                      peak_update, state_scale)
 from ._solve import Status, initial_matrix, solve
@@ -327,6 +328,11 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         s0 = s(*view(z0))
         c["status"] = jnp.where((s0 > 0) & jnp.isfinite(s0), c["status"], Status.TIME_TRANSFORM).astype(jnp.int32)
     c["done"] = c["status"] != Status.SUCCESS
+    # the closed form where the method has one for H (``_explicit``); a time-transformed run
+    # solves K = s (H + p_t), whose structure is not H's: it iterates
+    explicit = is_explicit(method) and clock is None
+    if explicit:
+        c["memo"] = method.explicit_start(H_bound, q0, p0)
 
     def body(c):
         active = ~c["done"]
@@ -337,20 +343,29 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         else:
             last = t + c["h"] * (1 + 4 * jnp.finfo(dtype).eps) >= t1
         h = jnp.where(last & (clock is None), t1 - t, c["h"])
-        # the last accepted element's polynomial continued over this one (the root finder
-        # falls back on the constant state where that is worse)
-        constant = method.initial_guess(q, p)
-        previous = (*jnp.split(c["z_prev"], 2), c["Z_prev"])
-        predicted = jnp.where(c["steps"] > 0, continued(method, q, p, previous, h / c["h_prev"]), constant)
-        Z, matrix, iterations, status, trips, lenient = solve(
-            fn, (method, q, p, h, args), predicted, constant, c["matrix"], state_scale(z), ~active, c["steps"] == 0,
-            options)
-        z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
+        if explicit:  # closed form (``_explicit``), from the force at z, carried from the last accepted element
+            Z, dz, memo = method.explicit(H_bound, q, p, h, c["memo"])
+            z1, comp = z + jnp.concatenate(dz), c["comp"]
+            matrix, iterations, trips, lenient = c["matrix"], 0, 0, 0
+            status = jnp.int32(Status.SUCCESS)
+        else:
+            # the last accepted element's polynomial continued over this one (the root finder
+            # falls back on the constant state where that is worse)
+            constant = method.initial_guess(q, p)
+            previous = (*jnp.split(c["z_prev"], 2), c["Z_prev"])
+            predicted = jnp.where(c["steps"] > 0, continued(method, q, p, previous, h / c["h_prev"]), constant)
+            Z, matrix, iterations, status, trips, lenient = solve(
+                fn, (method, q, p, h, args), predicted, constant, c["matrix"], state_scale(z), ~active,
+                c["steps"] == 0, options)
+            z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), c["comp"])
         W = method.polynomial(H_bound, q, p, Z, h)
         solved = (status == Status.SUCCESS) & jnp.all(jnp.isfinite(z1))
         status = jnp.where((status == Status.SUCCESS) & ~solved, Status.NONFINITE, status)
         # the embedded estimate, shared by the step rule and the run's estimate (``peak_update``)
-        embedded = embedded_error(H_bound, q, p, W, h) if pid or estimate is True else None
+        # an explicit element's force at its end (``_explicit``) where the estimate only ranks
+        # elements; a controller's steps take the field evaluated anew, as an iterated run's
+        field = method.explicit_field(H_bound, *jnp.split(z1, 2), memo) if explicit and not pid else None
+        embedded = embedded_error(H_bound, q, p, W, h, field) if pid or estimate is True else None
         step = dict(z=z, z1=z1, W=W, h=h, t=t, t1=t1, last=last, solved=solved, status=status, embedded=embedded)
         verdict = rule(c, step)
         accept, finished = verdict["accept"] & active, verdict["finished"]
@@ -358,6 +373,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         new = dict(c, matrix=matrix, h=jnp.where(active, verdict["h_next"], c["h"]),
                    **jax.tree.map(lambda a, b: jnp.where(active, a, b), verdict["memory"], {k: c[k] for k in memory}))
         end = dict(z=z1, comp=comp, t=verdict["t_b"], z_prev=z, Z_prev=Z, h_prev=h)
+        if explicit:
+            end["memo"] = memo
         # between the nodes the element's polynomial refined to the nodes' accuracy, where a
         # save time or an event lies in the element (every element for dense output)
         step = dict(step, t_b=verdict["t_b"])

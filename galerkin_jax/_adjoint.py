@@ -44,6 +44,7 @@ import jax.numpy as jnp
 
 from . import _adaptive, _output
 from ._controllers import symbolic_zero as _symbolic_zero
+from ._explicit import is_explicit
 from ._march import bind_args, continued, element_residual, state_scale
 from ._solve import Options, Status, implicit, initial_matrix, solve
 
@@ -325,18 +326,31 @@ def _element(spec, fn, theta, z, h, Z):
     differentiable in theta = (method, args~), z and h (``_solve.implicit``)."""
     method, args = theta
     q, p = jnp.split(z, 2)
+    H_bound = bind_args(fn, args)
+    if explicit_here(method, spec):  # the closed form, differentiated as it is (``_explicit``)
+        Z, dz, _ = method.explicit(H_bound, q, p, h, method.explicit_start(H_bound, q, p))
+        return z + jnp.concatenate(dz), method.polynomial(H_bound, q, p, Z, h)
     residual = element_residual(fn, spec.options.solver.sweep_dimension)
     Z = implicit(residual, spec.options.solver.dense_limit, (method, q, p, h, args), Z, jnp.ones((), bool))
-    H_bound = bind_args(fn, args)
     return z + jnp.concatenate(method.increment(H_bound, q, p, Z, h)), method.polynomial(H_bound, q, p, Z, h)
 
 
-def _resolve(fn, theta, z, h, previous, matrix, options):
+def explicit_here(method, spec):
+    """Whether the run's elements are computed in closed form: an explicit method (``_explicit``)
+    on H itself, not on a time-transformed K (``_adaptive.run``)."""
+    return is_explicit(method) and spec.transform is None
+
+
+def _resolve(fn, theta, z, h, previous, matrix, options, explicit=False):
     """The root of the element of length h from z, found again from the previous element's
     polynomial continued (``previous = (z, Z, h, have)``; the constant state where not
     ``have``), ``matrix`` carried on. Returns ``(Z, matrix, converged)``."""
     method, args = theta
     q, p = jnp.split(z, 2)
+    if explicit:  # the closed form (``explicit_here``), without iteration
+        H_bound = bind_args(fn, args)
+        Z, dz, _ = method.explicit(H_bound, q, p, h, method.explicit_start(H_bound, q, p))
+        return jax.lax.stop_gradient(Z), matrix, jnp.all(jnp.isfinite(dz[0])) & jnp.all(jnp.isfinite(dz[1]))
     constant = method.initial_guess(q, p)
     z_prev, Z_prev, h_prev, have = previous
     guess = jnp.where(have, continued(method, q, p, (*jnp.split(z_prev, 2), Z_prev), h / h_prev), constant)
@@ -656,7 +670,8 @@ def _tangent_sweep(spec, inputs, c, d, wanted):
     def body(s):
         n, carry, d_carry, t_n, matrix, previous, ok, out = s
         element = _Element(spec, fn, inputs, c, clock, n, t_n, None)
-        element.Z, matrix, solved = _resolve(fn, theta, carry[0], element.h_n, previous, matrix, options)
+        element.Z, matrix, solved = _resolve(fn, theta, carry[0], element.h_n, previous, matrix, options,
+                                                    explicit_here(theta[0], spec))
         (carry1, local), (d_carry1, d_local) = jax.jvp(element.local(hold), (theta, carry, times),
                                                         (d_theta, d_carry, d_times))
         out = _write_tangents(kinds, n, local, d_local, extra, d_extra, out)
@@ -712,7 +727,7 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
         def found(i, r):
             z, t, acc, matrix, previous, ok, kept = r
             h_n = c["hs"][first + i]
-            Z, matrix, solved = _resolve(fn, theta, z, h_n, previous, matrix, options)
+            Z, matrix, solved = _resolve(fn, theta, z, h_n, previous, matrix, options, explicit_here(theta[0], spec))
             z1 = _element(spec, fn, theta, z, h_n, Z)[0]
             kept = jax.tree.map(lambda b, x: b.at[i].set(x), kept, dict(z=z, Z=Z, t=t, acc=acc))
             acc1 = None if spec.observe is None else spec.observe(acc, *view(z1))

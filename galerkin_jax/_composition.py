@@ -226,6 +226,9 @@ class Composition(AbstractMethod):
     def explicit_start(self, H, q0, p0):
         return self.method.explicit_start(H, q0, p0)
 
+    def explicit_field(self, H, q1, p1, memo):
+        return self.method.explicit_field(H, q1, p1, memo)
+
     def explicit_form(self, structure):
         """The composition of the method's explicit form for H's structure, or None."""
         form = getattr(self.method, "explicit_form", None)

@@ -373,7 +373,7 @@ class Events:
     ended: jax.Array
 
 
-def embedded_error(H, q0, p0, W, h):
+def embedded_error(H, q0, p0, W, h, field=None):
     """The controller's estimate of one element: the defect of its polynomial at the element's
     end, ``delta(1) = w'(1) - h F(w(1))`` with F = J DH (``_defect``), shape ``(2d,)``.
 
@@ -382,12 +382,14 @@ def embedded_error(H, q0, p0, W, h):
     (degree + 1): an embedded estimate of order q from what the element already has, at the
     cost of one evaluation of Hamilton's field. The full a posteriori estimate
     (``_defect.local_error``) has the method's own order (2k + 1 for cG(k)) and costs J + 1
-    field evaluations and J products with its Jacobian.
+    field evaluations and J products with its Jacobian. ``field``: F at the element's end where
+    the element has it already (an explicit element's force, ``_explicit``), else None.
     """
     m = W.shape[0]
     slopes = jnp.asarray([j * (j + 1.0) for j in range(m)], W.dtype)  # d/dalpha P_j(2 alpha - 1) at 1
-    end = jnp.concatenate([q0, p0]) + jnp.sum(W, axis=0)
-    return jnp.sum(slopes[:, None] * W, axis=0) - h * symplectic_field(H)(end)
+    if field is None:
+        field = symplectic_field(H)(jnp.concatenate([q0, p0]) + jnp.sum(W, axis=0))
+    return jnp.sum(slopes[:, None] * W, axis=0) - h * field
 
 
 def scaled_error(e, z0, z1, controller):

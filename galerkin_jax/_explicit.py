@@ -66,6 +66,10 @@ class ExplicitVI(AbstractMethod):
         """g(q0) = -dH/dq at the start of a run, the force the first element reuses."""
         return -jax.grad(H, argnums=0)(q0, p0)
 
+    def explicit_field(self, H, q1, p1, memo):
+        """F(z1) at the end of an element whose memo is ``memo`` (``end_field``)."""
+        return end_field(H, q1, p1, memo)
+
     def explicit(self, H, q0, p0, h, g0):
         """The element from the force ``g0 = g(q0)``: ``(Z, (dq, dp), g(q1))``."""
         w = jnp.asarray(self.method.quadrature.weights, q0.dtype)
@@ -78,13 +82,22 @@ class ExplicitVI(AbstractMethod):
         return Z, (c, h * (W0 * g0 + W1 * g1)), g1
 
 
+def end_field(H, q1, p1, g1):
+    """Hamilton's field at an element's end, F(z1) = (T'(p1), g(q1)), from the force g1 = g(q1)
+    that the element computed (its memo): one gradient of T, none of V."""
+    return jnp.concatenate([jax.grad(H, argnums=1)(q1, p1), g1])
+
+
 def endpoint_indices(rule):
     """``(start, end)``: the indices of a concrete rule's points at 0 and at 1, or None where a
-    point lies inside (0, 1) or the points are traced."""
-    if isinstance(rule.points, jax.core.Tracer) or np.ndim(rule.points) != 1:
+    point lies inside (0, 1) or the points are traced. A sweep's stacked rules (``(B, n)``,
+    ``stack_methods``) count where every member has the same points."""
+    if isinstance(rule.points, jax.core.Tracer):
         return None
     points = np.asarray(rule.points)
-    if not np.all((points == 0.0) | (points == 1.0)):
+    if points.ndim == 2 and points.shape[0] >= 1 and np.all(points == points[:1]):
+        points = points[0]
+    if points.ndim != 1 or not np.all((points == 0.0) | (points == 1.0)):
         return None
     return tuple(int(i) for i in np.flatnonzero(points == 0.0)), tuple(int(i) for i in np.flatnonzero(points == 1.0))
 
@@ -95,13 +108,52 @@ def explicit_form(method, H, q0, p0, args, solver):
 
     Args:
         H: the user's function (flattened states, ``_shape``), args unbound.
-        q0, p0: the start state, shape ``(d,)``; args: H's third argument or None.
+        q0, p0: the start state, shape ``(d,)`` (a sweep's: ``(B, d)``, read at member 0).
+        args: H's third argument or None (a sweep's: leaves with the leading axis B).
     """
     form = getattr(method, "explicit_form", None)
     if not solver.explicit or form is None or not method.hamiltonian:
         return method
-    explicit = form(structure(H, q0, p0, args))
+    explicit = form(cached_structure(H, q0, p0, args))
     return method if explicit is None else explicit
+
+
+def sweep_form(method, H, q0, p0, args, solver):
+    """``explicit_form`` for a sweep's stacked members: the structure read at member 0 (it reads
+    shapes and dtypes alone, which the members share)."""
+    member = lambda tree: jax.tree.map(lambda x: x[0], tree)
+    form = getattr(method, "explicit_form", None)
+    if not solver.explicit or form is None or not method.hamiltonian:
+        return method
+    explicit = form(cached_structure(H, member(q0), member(p0), None if args is None else member(args)))
+    return method if explicit is None else explicit
+
+
+def _spec(tree):
+    """A hashable description of a pytree's structure, shapes and dtypes."""
+    leaves, treedef = jax.tree.flatten(tree)
+    return treedef, tuple((jnp.shape(x), str(jnp.result_type(x))) for x in leaves)
+
+
+# structures read so far, oldest first: (H, state and args' shapes and dtypes) -> Structure
+_STRUCTURES = {}
+_KEPT = 256
+
+
+def cached_structure(H, q0, p0, args=None):
+    """``structure(H, q0, p0, args)``, traced once per H, state shapes and dtypes and args'
+    structure (it reads nothing else), so that a loop of ``step`` calls does not trace grad H
+    at every call. An H that cannot be hashed is read anew."""
+    try:
+        key = (H, _spec(q0), _spec(p0), None if args is None else _spec(args))
+        found = _STRUCTURES.get(key)
+    except TypeError:
+        return structure(H, q0, p0, args)
+    if found is None:
+        if len(_STRUCTURES) >= _KEPT:
+            _STRUCTURES.pop(next(iter(_STRUCTURES)))
+        found = _STRUCTURES[key] = structure(H, q0, p0, args)
+    return found
 
 
 def is_explicit(method):

@@ -6,7 +6,10 @@ a batch runs exactly the code of a single run (the root finder in ``_solve`` fol
 axes into its own batch axis). The carry holds the state with the compensation of its
 summation (Kahan: the increments of many small elements are added without losing their
 low bits, so round-off grows like sqrt(n)), the predictor's history, the iteration matrix,
-the first failure's status, Newton counts and the largest local error estimate.
+the first failure's status, Newton counts and the largest local error estimate. An element
+in closed form (``_explicit``) carries only what it needs: the state, summed plainly (one
+element's rounding is the plain scheme's; docs/performance.md, "Explicit elements"), the
+force it hands the next element, and its counts (``explicit_start``).
 """
 
 import functools
@@ -178,11 +181,12 @@ def peak_start(q0, p0, Z0, h):
                 h=stack(jnp.asarray(h, q0.dtype)))
 
 
-def embedded_size(method, H_bound, q, p, Z, h):
+def embedded_size(method, H_bound, q, p, Z, h, field=None):
     """The largest entry of an element's embedded estimate (``embedded_error``, one evaluation of
-    Hamilton's field), a number to rank elements by, not a function to differentiate."""
-    q, p, Z, h = jax.lax.stop_gradient((q, p, Z, h))
-    return jnp.max(jnp.abs(embedded_error(H_bound, q, p, method.polynomial(H_bound, q, p, Z, h), h)))
+    Hamilton's field, or none where ``field``, F at the element's end, is given), a number to
+    rank elements by, not a function to differentiate."""
+    q, p, Z, h, field = jax.lax.stop_gradient((q, p, Z, h, field))
+    return jnp.max(jnp.abs(embedded_error(H_bound, q, p, method.polynomial(H_bound, q, p, Z, h), h, field)))
 
 
 def peak_update(peak, size, q, p, Z, h, ok):
@@ -242,60 +246,42 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     split = lambda z: (z[:d], z[d:])
     z0 = jnp.concatenate([q0, p0])
     guess = method.initial_guess(q0, p0)
-    counters0 = jnp.zeros(len(COUNTERS), jnp.int32).at[_AT["status"]].set(input_status(q0, p0, h))
-    # the state a failed run carries from then on (no NaN enters the linearisation, nor,
-    # under vmap, the others' gradients), and whose scale starts a run
-    start = dict(z=z0, z_prev=z0, Z_prev=guess, scale=state_scale(z0))
-    carry = dict(start, comp=jnp.zeros_like(z0), misses=jnp.zeros((max(solver.miss_orders),) + guess.shape, guess.dtype),
-                 correction=jnp.zeros_like(guess),
-                 matrix=initial_matrix(guess, options), counters=counters0, done=jnp.zeros((), jnp.int32),
-                 estimate=jnp.zeros((), z0.dtype), acc=acc0)
-    if estimate is True:
-        carry["peak"] = peak_start(q0, p0, guess, h)
+    total = n_blocks * block_size
     explicit = is_explicit(method)
     if explicit:
-        carry["memo"] = method.explicit_start(H_bound, q0, p0)
-    total = n_blocks * block_size
+        carry = explicit_start(method, H_bound, q0, p0, h)
+    else:
+        counters0 = jnp.zeros(len(COUNTERS), jnp.int32).at[_AT["status"]].set(input_status(q0, p0, h))
+        # the state a failed run carries from then on (no NaN enters the linearisation, nor,
+        # under vmap, the others' gradients), and whose scale starts a run
+        start = dict(z=z0, z_prev=z0, Z_prev=guess, scale=state_scale(z0))
+        carry = dict(start, comp=jnp.zeros_like(z0),
+                     misses=jnp.zeros((max(solver.miss_orders),) + guess.shape, guess.dtype),
+                     correction=jnp.zeros_like(guess), matrix=initial_matrix(guess, options), counters=counters0,
+                     done=jnp.zeros((), jnp.int32))
+    carry.update(estimate=jnp.zeros((), z0.dtype), acc=acc0)
+    if estimate is True:
+        carry["peak"] = peak_start(q0, p0, guess, h)
 
-    def element(c):
-        z, counters = c["z"], c["counters"]
-        (q, p), failed = split(z), counters[_AT["status"]] != Status.SUCCESS
+    def step_size(done):
+        """The element's h (``h_last`` for the last one of a run to t1) and whether it idles."""
         last = total - 1 if n_active is None else n_active - 1
-        h_el = h if h_last is None else jnp.where(c["done"] == last, h_last, h)
-        idle = jnp.zeros((), bool) if n_active is None else c["done"] >= n_active
-        if explicit:  # closed form (``_explicit``): no predictor, no iteration, the force carried
-            Z, dz, memo = method.explicit(H_bound, q, p, h_el, c["memo"])
-            matrix, status, iterations, trips, lenient = c["matrix"], jnp.int32(Status.SUCCESS), 0, 0, 0
-        else:
-            previous = (*split(c["z_prev"]), c["Z_prev"])
-            Z_pred, continued, constant = predictor(method, q, p, previous, c["correction"])
-            Z, matrix, iterations, status, trips, lenient = solve(
-                fn, (method, q, p, h_el, args), Z_pred, constant, c["matrix"], c["scale"], failed | idle,
-                c["done"] == 0, options)
-            dz = method.increment(H_bound, q, p, Z, h_el)
-        z1, comp = compensated_add(z, jnp.concatenate(dz), c["comp"])
-        scale = state_scale(z1)  # the next element's (NaN or inf where z1 is not finite)
-        # an estimate, not a function to differentiate (and no 0 * inf from a failed run's)
-        frozen = jax.lax.stop_gradient((q, p, Z, h_el, args))
+        h_el = h if h_last is None else jnp.where(done == last, h_last, h)
+        idle = jnp.zeros((), bool) if n_active is None else done >= n_active
+        return h_el, idle
+
+    def extras(c, new, q, p, Z, h_el, z, z1, ok, idle, field=None):
+        """What a run asks for beyond the state: the estimate, the diagnostics, the idling of a
+        member past t1, the progress bar and the dense output."""
         full = estimate == "full"
-        local = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4])) if full else jnp.nan
-        status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(scale), Status.NONFINITE, status)
-        status = jnp.where(failed, counters[_AT["status"]], status)  # the first failure is kept
-        ok = status == Status.SUCCESS
-        now = jax.tree.map(lambda a, b: jnp.where(ok, b, a), start, dict(z=z1, z_prev=z, Z_prev=Z, scale=scale))
-        misses, correction = (c["misses"], c["correction"]) if explicit else miss_correction(
-            c["misses"], Z - continued, c["done"], solver.miss_orders)
-        acc = c["acc"] if observe is None else observe(c["acc"], *split(now["z"]))
-        counters = jnp.stack([status, counters[_AT["total"]] + iterations,
-                              jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips,
-                              counters[_AT["lenient"]] + lenient, counters[_AT["steps"]] + ok])
-        new = dict(c, **now, comp=comp, misses=misses, correction=correction, matrix=matrix,
-                   counters=counters.astype(jnp.int32), done=c["done"] + 1,
-                   estimate=jnp.maximum(c["estimate"], local), acc=acc)
-        if explicit:
-            new["memo"] = memo
+        if full:  # an estimate, not a function to differentiate (and no 0 * inf from a failed run's)
+            frozen = jax.lax.stop_gradient((q, p, Z, h_el, args))
+            local = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4]))
+            new["estimate"] = jnp.maximum(c["estimate"], local)
+        if observe is not None:
+            new["acc"] = observe(c["acc"], *split(state(new)))
         if estimate is True:
-            size = embedded_size(method, H_bound, q, p, Z, h_el)
+            size = embedded_size(method, H_bound, q, p, Z, h_el, None if field is None else field())
             new["peak"] = peak_update(c["peak"], size, q, p, Z, h_el, ok & ~idle)
         if n_active is not None:
             new = jax.tree.map(lambda a, b: jnp.where(idle, a, b), dict(c, done=c["done"] + 1), new)
@@ -306,22 +292,92 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
                 ) if dense else None
         return new, kept
 
+    def explicit_element(c):
+        """The element in closed form (``_explicit``): no predictor, no iteration, the force
+        carried; only the state, the memo and the counts are carried (``explicit_start``). A
+        failed run goes on from its start values, read in place of the carried ones (the
+        selection fuses into the element's first kernels)."""
+        failed = c["status"] != Status.SUCCESS
+        q, p, memo = (jnp.where(failed, c[k + "0"], c[k]) for k in ("q", "p", "memo"))
+        h_el, idle = step_size(c["done"])
+        Z, (dq, dp), memo = method.explicit(H_bound, q, p, h_el, memo)
+        q1, p1 = q + dq, p + dp
+        ok = ~failed & finite(q1, p1)
+        new = dict(c, q=q1, p=p1, memo=memo, steps=c["steps"] + ok, done=c["done"] + 1,
+                   status=jnp.where(ok | failed, c["status"], Status.NONFINITE).astype(jnp.int32))
+        z = jnp.concatenate([q, p]) if dense else None
+        return extras(c, new, q, p, Z, h_el, z, jnp.concatenate([q1, p1]) if dense else None, ok, idle,
+                      field=lambda: method.explicit_field(H_bound, q1, p1, memo))
+
+    def element(c):
+        z, counters = c["z"], c["counters"]
+        (q, p), failed = split(z), counters[_AT["status"]] != Status.SUCCESS
+        h_el, idle = step_size(c["done"])
+        previous = (*split(c["z_prev"]), c["Z_prev"])
+        Z_pred, continued, constant = predictor(method, q, p, previous, c["correction"])
+        Z, matrix, iterations, status, trips, lenient = solve(
+            fn, (method, q, p, h_el, args), Z_pred, constant, c["matrix"], c["scale"], failed | idle,
+            c["done"] == 0, options)
+        dz = method.increment(H_bound, q, p, Z, h_el)
+        z1, comp = compensated_add(z, jnp.concatenate(dz), c["comp"])
+        scale = state_scale(z1)  # the next element's (NaN or inf where z1 is not finite)
+        status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(scale), Status.NONFINITE, status)
+        status = jnp.where(failed, counters[_AT["status"]], status)  # the first failure is kept
+        ok = status == Status.SUCCESS
+        now = jax.tree.map(lambda a, b: jnp.where(ok, b, a), start, dict(z=z1, z_prev=z, Z_prev=Z, scale=scale))
+        misses, correction = miss_correction(c["misses"], Z - continued, c["done"], solver.miss_orders)
+        counters = jnp.stack([status, counters[_AT["total"]] + iterations,
+                              jnp.maximum(counters[_AT["most"]], iterations), counters[_AT["trips"]] + trips,
+                              counters[_AT["lenient"]] + lenient, counters[_AT["steps"]] + ok])
+        new = dict(c, **now, comp=comp, misses=misses, correction=correction, matrix=matrix,
+                   counters=counters.astype(jnp.int32), done=c["done"] + 1)
+        return extras(c, new, q, p, Z, h_el, z, z1, ok, idle)
+
+    def state(c):
+        return jnp.concatenate([c["q"], c["p"]]) if explicit else c["z"]
+
+    def status_of(c):
+        return c["status"] if explicit else c["counters"][_AT["status"]]
+
     def reported(c):
-        return split(nan_if_failed(c["z"], c["counters"][_AT["status"]]))
+        return split(nan_if_failed(state(c), status_of(c)))
 
     def block(c, _):
-        c, kept = jax.lax.scan(lambda c, _: element(c), c, None, length=block_size)
+        c, kept = jax.lax.scan(lambda c, _: (explicit_element if explicit else element)(c), c, None,
+                               length=block_size)
         return c, (reported(c), kept)
 
     if checkpoint:
         block = jax.checkpoint(block)
     final, (saved, kept) = jax.lax.scan(block, carry, None, length=n_blocks)
     q, p = reported(final)
-    status = final["counters"][_AT["status"]]
+    if explicit:  # no iteration: the solver's counters are zero
+        counts = dict(status=final["status"], steps=final["steps"],
+                      **{name: jnp.zeros((), jnp.int32) for name in ("total", "most", "trips", "lenient")})
+    else:
+        counts = {name: final["counters"][i] for i, name in enumerate(COUNTERS)}
     if estimate is True:
         final["estimate"] = peak_estimate(method, H_bound, final["peak"])
-    results = dict(q=q, p=p, estimate=nan_if_failed(final["estimate"], status), acc=final["acc"],
-                   **{name: final["counters"][i] for i, name in enumerate(COUNTERS)})
+    elif estimate is False:
+        final["estimate"] = jnp.full((), jnp.nan, z0.dtype)
+    results = dict(q=q, p=p, estimate=nan_if_failed(final["estimate"], counts["status"]), acc=final["acc"], **counts)
     if kept is not None:
         kept = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), kept)
     return results, saved, kept
+
+
+def finite(q, p):
+    """Whether every entry of q and p is finite: ``sum(q * 0 + p * 0)`` is 0, or NaN where an entry
+    is inf or NaN (one reduction, fused with the products; no overflow of a sum of finite values)."""
+    return jnp.isfinite(jnp.sum(q * 0.0 + p * 0.0))
+
+
+def explicit_start(method, H_bound, q0, p0, h):
+    """The carry of a run of explicit elements (``_explicit``): the state q, p, the memo one
+    element hands the next (the force), the start values a failed run carries from then on,
+    the status, the elements solved and taken. The state is summed without compensation: one
+    element's rounding is that of the plain scheme (docs/performance.md, "Explicit elements")."""
+    memo = method.explicit_start(H_bound, q0, p0)
+    zero = jnp.zeros((), jnp.int32)
+    return dict(q=q0, p=p0, memo=memo, q0=q0, p0=p0, memo0=memo, status=input_status(q0, p0, h), steps=zero,
+                done=zero)

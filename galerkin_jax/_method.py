@@ -70,8 +70,9 @@ class AbstractMethod(abc.ABC):
     of H that ``gj.structure`` read, a method whose element has a closed form, or None; that
     method has ``explicit_start(H, q0, p0) -> memo`` and ``explicit(H, q0, p0, h, memo) ->
     (Z, (dq, dp), memo)``, Z the root of its ``residual``, memo what one element hands the
-    next (Stormer-Verlet: the force). Fixed-step runs and ``step`` then call ``explicit``
-    instead of the solver.
+    next (Stormer-Verlet: the force), and ``explicit_field(H, q1, p1, memo)``, Hamilton's field
+    at the element's end from that memo (the embedded estimate's evaluation). Runs and
+    ``step`` then call ``explicit`` instead of the solver.
     """
 
     fixed_point = False

@@ -8,6 +8,7 @@ iterates: a failed one turns NaN, stops costing iterations and leaves the others
 and gradients as they are alone.
 """
 
+import dataclasses
 import functools
 from typing import Any
 
@@ -18,6 +19,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import _adjoint, _checks, _shape, _span
 from ._controllers import TimeTransform
+from ._explicit import sweep_form
 from ._integrate import DEFAULT_MAX_STEPS, solution
 from ._output import user_view
 from ._march import bind_args, march, nan_if_failed, reserved_to_t1, short_of_t1, solver_options
@@ -302,10 +304,13 @@ def sweep(
         if max_steps is not None:
             _span.check_max_steps(max_steps)
         controller = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, dtype), (configs.size,)), controller)
+    options = solver_options(configs.method, max_newton_iterations, krylov, solver)
+    # the explicit form (``_explicit``) where H's structure and the members' method have one
+    configs = dataclasses.replace(configs, method=sweep_form(configs.method, H, configs.q0, configs.p0, configs.args,
+                                                             options.solver))
     inputs = (configs, reference) if controller is None else (configs, reference, controller)
     if devices is not None:
         inputs = _shard(inputs, devices)
-    options = solver_options(configs.method, max_newton_iterations, krylov, solver)
     span = (jnp.asarray(t0, dtype), None if t1 is None else jnp.asarray(t1, dtype))
     if controller is None:
         result = _run(H, tuple(invariants.items()), n_steps or counts, save_every, options, checkpoint,
