@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from ._composition import hermite_polynomial
+from ._explicit import end_field
 from ._method import AbstractMethod
 from ._pytree import pytree_dataclass
 from ._structure import structure
@@ -158,6 +159,12 @@ class Splitting(AbstractMethod):
                 fresh = False
         dq, dp = q - q0, p - p0
         return jnp.concatenate([dq, dp]), (dq, dp), g
+
+    def explicit_field(self, H, q1, p1, memo):
+        """Hamilton's field at the element's end (``_explicit.end_field``): from the memo where the
+        element ends with a kick (the force at q1), else from a force evaluated anew."""
+        ends_with_kick = len(self.kicks) > len(self.drifts) and self.kicks[-1] != 0.0
+        return end_field(H, q1, p1, memo if ends_with_kick else force(H, q1, p1))
 
     def initial_guess(self, q0, p0, previous=None, ratio=None):
         if previous is not None and ratio is None:
