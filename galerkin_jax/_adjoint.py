@@ -381,13 +381,16 @@ def _save(clock, z, W, z1, t_n, h, ts, alpha, node):
 
 def _event(g, sigma, clock, view, z, W, t_n, h, alpha):
     """``(t*, z*, alpha*)``: an event's time (in the run's tau), state and place in an element,
-    alpha* the root of g(sigma tau(alpha), w(alpha)) that the forward run located."""
+    alpha* the root of g(sigma tau(alpha), w(alpha)) that the forward run located. A traced
+    sigma is an argument of the root's function (a value it closed over would be a constant of
+    a transformation that has not traced it); a known one is a constant of it."""
+    traced = () if isinstance(sigma, int) else (sigma,)
 
-    def g_at(a, z, W, t_n, h):
-        t = _output.directed(_output.time_at(z, W, a, t_n, h, clock), sigma)
+    def g_at(a, z, W, t_n, h, *traced):
+        t = _output.directed(_output.time_at(z, W, a, t_n, h, clock), traced[0] if traced else sigma)
         return g(t, *view(_output.on_polynomial(z, W, a[None])[0]))
 
-    alpha = _output.root(g_at, alpha, (z, W, t_n, h))
+    alpha = _output.root(g_at, alpha, (z, W, t_n, h, *traced))
     return _output.time_at(z, W, alpha, t_n, h, clock), _output.on_polynomial(z, W, alpha[None])[0], alpha
 
 
@@ -505,8 +508,8 @@ def _kinds(spec, inputs, c, clock, view):
     def ended(local):
         """``(t*, z*, alpha*)`` of the terminal event that ended the run in this element."""
         rows = [(k, e) for k, e in enumerate(spec.events) if e.terminal]
-        branch = lambda e, k: lambda: _event(e.g, sigma, clock, view, local["z"], local["W"], local["start"], local["h"],
-                                             c["ev_alpha"][k][0])
+        branch = lambda e, k: lambda: _event(e.g, sigma, clock, view, local["z"], local["W"], local["start"],
+                                             local["h"], c["ev_alpha"][k][0])
         index = sum(jnp.where(c["ended"] == k, i, 0) for i, (k, _) in enumerate(rows))
         return jax.lax.switch(index, [branch(e, k) for k, e in rows])
 
@@ -545,8 +548,8 @@ def _kinds(spec, inputs, c, clock, view):
     for k, event in enumerate(spec.events or ()):
         owner = jnp.where(c["ev_n"][k] < 0, _NOWHERE, c["ev_n"][k])
         kinds.append(_Rows((f"ev_t/{k}", f"ev_z/{k}"), owner,
-                           lambda l, _, i, k=k, g=event.g: _event(g, sigma, clock, view, l["z"], l["W"], l["start"], l["h"],
-                                                                  c["ev_alpha"][k][i])[:2]))
+                           lambda l, _, i, k=k, g=event.g: _event(g, sigma, clock, view, l["z"], l["W"], l["start"],
+                                                                  l["h"], c["ev_alpha"][k][i])[:2]))
     return kinds
 
 
