@@ -273,7 +273,7 @@ def _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, 
 
 
 def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, ts=None, dense=False,
-        events=None, estimate=False, clock=None, s=None, observe=None, acc0=None, every=None):
+        events=None, estimate=False, clock=None, s=None, observe=None, acc0=None, every=None, sigma=1):
     """Integrate from t0 to t1 with the step rule ``controller`` (None: the constant h0).
 
     Args:
@@ -287,6 +287,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         observe, acc0: ``(acc, q, p) -> acc`` folded over the accepted states (``march``).
         dense: keep every accepted node's time and state (``node_t``, ``node_z``) and, True,
             every element's polynomial (``W``); "nodes": the nodes alone (``save_at="steps"``).
+        sigma: the run's direction: it runs forwards in tau = sigma t (``_integrate._directed``),
+            and its events' g take t (``_output.directed``).
         every: keep ``checkpoints`` (z, t and acc at every ``every``-th accepted node, from the
             first) and ``kept``, the start z, t, acc and root Z of the accepted elements since
             the last checkpoint (element n in row n mod every), for the derivatives
@@ -316,13 +318,17 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     else:
         count = element_count(t0, t1, h0)
         rule, memory = _constant_rule(t0, h0), {}
-    gs = None if events is None else tuple(lambda t, z, g=event.g: g(t, *view(z)) for event in events)
+    gs = None if events is None else tuple(lambda t, z, g=event.g: g(_output.directed(t, sigma), *view(z))
+                                           for event in events)
     c = _initial_carry(method, z0, t0, h0, guess, options, max_steps, m, ts, dense, events, gs, observe, acc0,
                        estimate, every)
     c.update(memory)
-    # a run backwards arrives flipped (``_integrate``): a traced t1 < t0 that was not is bad input,
-    # and so is a traced save time outside [t0, t1] (concrete ones raise before)
+    # a run arrives forwards in its time (``_integrate._directed``): a traced t1 < t0 that did not (a
+    # Lagrangian's) is bad input, and so is a traced save time outside [t0, t1], or out of the run's
+    # order where that was not known before it ran (concrete ones raise before)
     valid = (t1 > t0) if ts is None else (t1 > t0) & jnp.all((ts >= t0) & (ts <= t1))
+    if ts is not None and not isinstance(sigma, int):
+        valid = valid & jnp.all(ts[1:] >= ts[:-1])
     c["status"] = jnp.where(valid, c["status"], Status.INVALID_INPUT).astype(jnp.int32)
     if s is not None:
         s0 = s(*view(z0))

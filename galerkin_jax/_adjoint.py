@@ -101,7 +101,9 @@ def run(spec, inputs):
 
     Args:
         inputs: dict of ``q0``, ``p0`` (flat), ``args``, ``method``, ``controller`` (a
-            ``PIDController`` or None), ``t0``, ``t1``, ``ts`` (or None) and ``h``.
+            ``PIDController`` or None), ``t0``, ``t1``, ``ts`` (or None) and ``h``, in the run's
+            time tau, and optionally ``direction`` (``_output.Direction``: its events' g take
+            t = sigma tau; none: forwards).
     Returns:
         dict: ``z``, ``t`` (where and when the run ended), ``saved`` (the states at ``ts``),
         ``places`` (their elements and alphas), the events, the dense buffers, ``acc``, and the
@@ -288,6 +290,11 @@ def _start(spec, q0, p0, args, t0):
     return jnp.concatenate([z_q0, z_p0]), run_args
 
 
+def _sigma(inputs):
+    """The run's direction sigma (``_output.Direction``), 1 where the inputs name none."""
+    return inputs.get("direction", _output.FORWARDS).sigma
+
+
 def _problem(spec, inputs):
     """``(H~, s~, clock)`` of the problem the loop solves."""
     fn, _, _, _, s, clock = _adaptive.problem(spec.H, spec.transform, inputs["q0"], inputs["p0"], inputs["t0"],
@@ -307,7 +314,7 @@ def _forward(spec, inputs, keep):
     c = _adaptive.run(inputs["method"], fn, *jnp.split(z0, 2), inputs["t0"], inputs["t1"], inputs["h"], run_args,
                       controller, options=spec.options, max_steps=spec.max_steps, ts=inputs["ts"], dense=spec.dense,
                       events=spec.events, estimate=spec.estimate, clock=clock, s=s, observe=spec.observe, acc0=acc0,
-                      every=every)
+                      every=every, sigma=_sigma(inputs))
     keep = ("z", "t", "status", "steps", "rejected", "attempts", "total", "most", "trips", "lenient", "h_min", "h_max",
             "estimate", "hs", "ev_t", "ev_z", "ev_n", "ev_alpha", "ev_count", "ended", "node_t", "node_z", "W", "acc",
             "checkpoints", "kept")
@@ -386,14 +393,18 @@ def _save(clock, z, W, z1, t_n, h, ts, alpha, node):
     return _output.state_at(z, W, z1, alpha, node)
 
 
-def _event(g, clock, view, z, W, t_n, h, alpha):
-    """``(t*, z*, alpha*)``: an event's time, state and place in an element, alpha* the root of
-    g(t(alpha), w(alpha)) that the forward run located."""
+def _event(g, sigma, clock, view, z, W, t_n, h, alpha):
+    """``(t*, z*, alpha*)``: an event's time (in the run's tau), state and place in an element,
+    alpha* the root of g(sigma tau(alpha), w(alpha)) that the forward run located. A traced
+    sigma is an argument of the root's function (a value it closed over would be a constant of
+    a transformation that has not traced it); a known one is a constant of it."""
+    traced = () if isinstance(sigma, int) else (sigma,)
 
-    def g_at(a, z, W, t_n, h):
-        return g(_output.time_at(z, W, a, t_n, h, clock), *view(_output.on_polynomial(z, W, a[None])[0]))
+    def g_at(a, z, W, t_n, h, *traced):
+        t = _output.directed(_output.time_at(z, W, a, t_n, h, clock), traced[0] if traced else sigma)
+        return g(t, *view(_output.on_polynomial(z, W, a[None])[0]))
 
-    alpha = _output.root(g_at, alpha, (z, W, t_n, h))
+    alpha = _output.root(g_at, alpha, (z, W, t_n, h, *traced))
     return _output.time_at(z, W, alpha, t_n, h, clock), _output.on_polynomial(z, W, alpha[None])[0], alpha
 
 
@@ -503,6 +514,7 @@ def _kinds(spec, inputs, c, clock, view):
     """Every differentiable output of the run as ``_Rows``: the dense output's nodes and
     polynomials, where the run ended, the states at the save times, and the events."""
     steps, dtype = c["steps"], c["hs"].dtype
+    sigma = _sigma(inputs)
     outside = spec.max_steps + 2  # a row index no output has
     terminal = _terminal(spec)
     ended_here = lambda n: _terminated(spec, c) & (n == steps - 1)
@@ -510,8 +522,8 @@ def _kinds(spec, inputs, c, clock, view):
     def ended(local):
         """``(t*, z*, alpha*)`` of the terminal event that ended the run in this element."""
         rows = [(k, e) for k, e in enumerate(spec.events) if e.terminal]
-        branch = lambda e, k: lambda: _event(e.g, clock, view, local["z"], local["W"], local["start"], local["h"],
-                                             c["ev_alpha"][k][0])
+        branch = lambda e, k: lambda: _event(e.g, sigma, clock, view, local["z"], local["W"], local["start"],
+                                             local["h"], c["ev_alpha"][k][0])
         index = sum(jnp.where(c["ended"] == k, i, 0) for i, (k, _) in enumerate(rows))
         return jax.lax.switch(index, [branch(e, k) for k, e in rows])
 
@@ -550,8 +562,8 @@ def _kinds(spec, inputs, c, clock, view):
     for k, event in enumerate(spec.events or ()):
         owner = jnp.where(c["ev_n"][k] < 0, _NOWHERE, c["ev_n"][k])
         kinds.append(_Rows((f"ev_t/{k}", f"ev_z/{k}"), owner,
-                           lambda l, _, i, k=k, g=event.g: _event(g, clock, view, l["z"], l["W"], l["start"], l["h"],
-                                                                  c["ev_alpha"][k][i])[:2]))
+                           lambda l, _, i, k=k, g=event.g: _event(g, sigma, clock, view, l["z"], l["W"], l["start"],
+                                                                  l["h"], c["ev_alpha"][k][i])[:2]))
     return kinds
 
 

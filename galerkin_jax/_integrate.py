@@ -11,7 +11,7 @@ from ._controllers import Event, Events, PIDController, TimeTransform
 from ._explicit import explicit_form
 
 from ._march import (bind_args, input_status, march, nan_if_failed, reserved_to_t1, short_of_t1, solve_element,
-                     solver_options, time_reversed)
+                     solver_options, in_direction)
 from ._output import DenseOutput
 from ._pytree import pytree_dataclass
 from ._solve import SolverOptions, Status, throw_if_failed
@@ -195,7 +195,8 @@ def integrate(
             as diffrax's.
         n_steps: number of elements, a multiple of ``save_every``. Static. Give it or ``t1``.
         t0: start time.
-        t1: end time, != t0; t1 < t0 runs backwards in time (not with LagrangianVI).
+        t1: end time, != t0; t1 < t0 runs backwards in time (not with LagrangianVI), also where t0
+            or t1 is traced (``jit``, ``vmap`` over t1 with members of both directions).
         controller: None (fixed steps), ``PIDController`` or ``TimeTransform``; needs ``t1``.
         max_steps: static cap on a controller's attempts (accepted and rejected; default
             4096); with fixed steps to a traced ``t1`` or ``h``, the elements the scan reserves.
@@ -261,12 +262,11 @@ def integrate(
     flags = (checkpoint, bool(dense), bool(progress), estimate)
     single = isinstance(events, Event)
     events = _span.check_events(events, q0, p0, t0)
-    if t1 is not None and _span.backwards(t0, t1):
-        sol = _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_at, events, save_every,
-                         options, flags)
-    else:
-        sol = _dispatch(H, q0, p0, method, h, args, n_steps, jnp.asarray(t0, q0.dtype), t1, controller, max_steps,
-                        save_at, events, save_every, options, flags)
+    sigma = _span.direction(t0, t1, q0.dtype)
+    nodes = _span.check_nodes(save_at, save_every)
+    ts = None if nodes else _span.check_save_at(save_at, t0, t1, q0.dtype, sigma)
+    sol = _directed(H, q0, p0, method, h, args, n_steps, t0, t1, sigma, controller, max_steps, ts, nodes, events,
+                    save_every, options, flags)
     if single:
         sol = dataclasses.replace(sol, events=sol.events[0])
     if throw:
@@ -274,49 +274,51 @@ def integrate(
     return sol
 
 
-def _backwards(H, q0, p0, method, h, args, t0, t1, controller, max_steps, save_at, events, save_every, options,
-               flags):
-    """A run from t0 back to t1 < t0: Hamilton's flow is reversible, and with s = -t,
-    dz/ds = J D(-H)(z), so it is the run of -H from -t0 to -t1 (save times and an event's g
-    mapped alike), its times negated back."""
+def _directed(H, q0, p0, method, h, args, n_steps, t0, t1, sigma, controller, max_steps, ts, nodes, events,
+              save_every, options, flags):
+    """The run from t0 to t1 in the direction sigma = sign(t1 - t0) (``_span.direction``): with
+    tau = sigma t, Hamilton's flow is dz/dtau = J D(sigma H)(z), so it is the run forwards of
+    sigma H (``_march.in_direction``) from sigma t0 to sigma t1, its save times sigma ts, its
+    events' g evaluated at t = sigma tau (``_output.directed``; ``Event.direction`` counts in
+    run order), its times mapped back by t = sigma tau and its dense output mapping t <-> tau
+    (``DenseOutput.direction``). A known sigma is a Python int (1: the run as it is; -1: -H,
+    times negated); a traced one (``jit``, ``vmap`` over t1) is carried as a value, so one
+    program runs either way."""
+    known = isinstance(sigma, int)
+    if (known and sigma == 1) or (not known and not method.hamiltonian):
+        # forwards; or a Lagrangian, which has no sigma H: a traced t1 < t0 is INVALID_INPUT in the run
+        return _dispatch(H, q0, p0, method, h, args, n_steps, jnp.asarray(t0, q0.dtype), t1, controller,
+                         max_steps, ts, nodes, events, save_every, options, flags, _output.FORWARDS)
     if not method.hamiltonian:
         raise ValueError("t1 < t0 (a run backwards in time) needs a Hamiltonian method; LagrangianVI is given L.")
-    if not _span.check_nodes(save_at, save_every):  # save times in the user's time, before the flip
-        _span.check_save_at(save_at, t0, t1, q0.dtype)
-    flip = lambda x: x if x is None or isinstance(x, str) else -jnp.asarray(x, q0.dtype)  # "steps" stays
-    reversed_events = None if events is None else tuple(dataclasses.replace(e, g=_time_reversed_event(e.g))
-                                                         for e in events)
-    sol = _dispatch(time_reversed(H), q0, p0, method, h, args, None, flip(t0), flip(t1), controller, max_steps,
-                    flip(save_at), reversed_events, save_every, options, flags)
+    direction = _output.Direction(sigma)
+    H, args = in_direction(H, args, sigma)
+    into = lambda x: None if x is None else _output.directed(jnp.asarray(x, q0.dtype), sigma)
+    sol = _dispatch(H, q0, p0, method, h, args, None, into(t0), into(t1), controller, max_steps, into(ts), nodes,
+                    events, save_every, options, flags, direction)
+    back = lambda x: _output.directed(x, sigma)
     dense = None if sol.dense is None else dataclasses.replace(
-        sol.dense, t=-sol.dense.t, t_end=-sol.dense.t_end, t1=-sol.dense.t1, direction=-1)
-    events = None if sol.events is None else [dataclasses.replace(e, t=-e.t) for e in sol.events]
-    return dataclasses.replace(sol, t=-sol.t, dense=dense, events=events)
+        sol.dense, t=back(sol.dense.t), t_end=back(sol.dense.t_end), t1=back(sol.dense.t1), direction=direction)
+    events = None if sol.events is None else [dataclasses.replace(e, t=back(e.t)) for e in sol.events]
+    return dataclasses.replace(sol, t=back(sol.t), dense=dense, events=events)
 
 
-@functools.lru_cache(maxsize=None)
-def _time_reversed_event(g):
-    """g at the time -s of the reversed run's s."""
-    return lambda s, q, p: g(-s, q, p)
-
-
-def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps, save_at, events, save_every,
-              options, flags):
-    """The compiled run that ``integrate``'s arguments ask for: fixed steps (a scan), or a loop
-    whose steps are not known in advance (``_integrate_adaptive``)."""
+def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps, ts, nodes, events, save_every,
+              options, flags, direction):
+    """The compiled run that ``integrate``'s arguments ask for, forwards in its time (``_directed``):
+    fixed steps (a scan), or a loop whose steps are not known in advance (``_integrate_adaptive``,
+    whose events read the run's ``direction``)."""
     statics = (options, *flags)
     checkpoint, dense, progress, estimate = flags
-    nodes = _span.check_nodes(save_at, save_every)
     if nodes:  # fixed steps save every node anyway
-        save_at, save_every = None, 1
-    if n_steps is not None and save_at is None and events is None:
+        save_every = 1
+    if n_steps is not None and ts is None and events is None:
         _checks.check_counts(n_steps, save_every)
         return _integrate(H, q0, p0, method, h, args, t0, None, None, n_steps, save_every, *statics)
     if n_steps is not None:
         _checks.check_counts(n_steps, 1)
         t1 = t0 + n_steps * h
     t1 = jnp.asarray(t1, q0.dtype)
-    ts = _span.check_save_at(save_at, t0, t1, q0.dtype)
     concrete = _span.concrete(h, t0, t1)
     if max_steps is not None:
         _span.check_max_steps(max_steps)
@@ -332,7 +334,7 @@ def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps
     if max_steps is None:
         max_steps = _span.fixed_step_count(t0, t1, h)[0] if controller is None and concrete else DEFAULT_MAX_STEPS
     return _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options,
-                               dense, estimate, nodes, checkpoint)
+                               dense, estimate, nodes, checkpoint, direction)
 
 
 def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
@@ -386,13 +388,14 @@ def _integrate(H, q0, p0, method, h, args, t0, t1, h_last, n_steps, save_every, 
     )
     if n_active is not None:
         final["status"] = short_of_t1(final["status"], t_end, t1)
-        final, saved, kept = _forwards_only(t0, t1, final, saved, kept)
+        if not method.hamiltonian:  # a Hamiltonian method's run arrives forwards (``_directed``)
+            final, saved, kept = _forwards_only(t0, t1, final, saved, kept)
     return solution(final, saved, kept, q0, p0, h, save_every, t0, t_end)
 
 
 def _forwards_only(t0, t1, final, saved, kept):
-    """A traced t1 < t0 whose order was not known when traced (``_span.backwards``) is bad input:
-    status INVALID_INPUT, NaN states (a run backwards arrives flipped where the order is known)."""
+    """A traced t1 < t0 of a method given a Lagrangian, which has no run backwards
+    (``_directed``), is bad input: status INVALID_INPUT, NaN states."""
     wrong = t1 < t0
     final = dict(final, status=jnp.where(wrong, Status.INVALID_INPUT, final["status"]).astype(jnp.int32))
     nan = lambda tree: jax.tree.map(lambda x: jnp.where(wrong, jnp.nan, x), tree)
@@ -401,15 +404,16 @@ def _forwards_only(t0, t1, final, saved, kept):
 
 @functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14, 15, 16))
 def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options, dense,
-                        estimate, nodes, checkpoint):
+                        estimate, nodes, checkpoint, direction):
     """A run whose steps are not known in advance (``_adaptive.run``), with the derivatives of the
     run that takes the same steps (``_adjoint``); ``nodes``: its saves are every accepted node
-    (``save_at="steps"``), padded with t = inf and NaN states to ``max_steps + 1``."""
+    (``save_at="steps"``), padded with t = inf and NaN states to ``max_steps + 1``. Its times are
+    the run's tau, forwards; its events read the user's t = sigma tau (``direction``)."""
     transform = controller if isinstance(controller, TimeTransform) else None
     spec = _adjoint.Spec(H, transform, options, max_steps, dense=True if dense else ("nodes" if nodes else False),
                          events=events, estimate=estimate, checkpoint=checkpoint)
     inputs = dict(q0=q0, p0=p0, args=args, method=method, controller=None if transform else controller, t0=t0,
-                  t1=t1, ts=ts, h=h)
+                  t1=t1, ts=ts, h=h, direction=direction)
     c = _adjoint.run(spec, inputs)
     clock = None if transform is None else q0.shape[0]
     view = lambda z: _output.user_view(z, clock)

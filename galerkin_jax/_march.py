@@ -36,6 +36,23 @@ def time_reversed(H):
     return lambda q, p, *args: -H(q, p, *args)
 
 
+@functools.lru_cache(maxsize=None)
+def _time_directed(H):
+    """sigma H, sigma carried in front of H's arguments: ``(q, p, (sigma, *args))``."""
+    return lambda q, p, directed_args: directed_args[0] * H(q, p, *directed_args[1:])
+
+
+def in_direction(H, args, sigma):
+    """``(H~, args~)`` of the run in tau = sigma t, sigma = sign(t1 - t0): Hamilton's flow in
+    tau is dz/dtau = sigma J DH(z) = J D(sigma H)(z), a run forwards of sigma H (H(q, p) or
+    H(q, p, args)). A known sigma (a Python int, ``_output.Direction``) is a constant of
+    H~: H itself, or ``time_reversed(H)``, with args as they are, so that a known direction
+    compiles to the program it always did; a traced one travels in args~ = (sigma, *args)."""
+    if isinstance(sigma, int):
+        return (H if sigma == 1 else time_reversed(H)), args
+    return _time_directed(H), (sigma,) if args is None else (sigma, args)
+
+
 def input_status(q0, p0, h):
     ok = jnp.isfinite(h) & (h > 0) & jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(p0))
     return jnp.where(ok, Status.SUCCESS, Status.INVALID_INPUT).astype(jnp.int32)

@@ -137,6 +137,40 @@ def alpha_at_time(z0, W, t, t0, h, clock, node=0):
     return root(f, jax.lax.stop_gradient(located), (z0, W, t))
 
 
+class Direction:
+    """The run's direction sigma = sign(t1 - t0) as a pytree: it runs forwards in tau = sigma t
+    (``_integrate``). A Python +1 or -1, where the direction was known while tracing, is
+    auxiliary data (the program is built for it, as a constant); a traced one, the run's order
+    known only when it runs (``jit``, ``vmap`` over t1), is a leaf."""
+
+    __slots__ = ("sigma",)
+
+    def __init__(self, sigma):
+        self.sigma = sigma
+
+    def __repr__(self):
+        return f"Direction({self.sigma!r})"
+
+
+def _static(sigma):
+    return isinstance(sigma, int) and not isinstance(sigma, bool)
+
+
+jax.tree_util.register_pytree_node(
+    Direction, lambda d: ((), d.sigma) if _static(d.sigma) else ((d.sigma,), None),
+    lambda sigma, leaves: Direction(sigma if sigma is not None else leaves[0]))
+
+FORWARDS = Direction(1)
+
+
+def directed(x, sigma):
+    """sigma x: a time t in the run's time tau = sigma t, or back (sigma^2 = 1); x itself for
+    a known sigma = 1, -x for -1, so that a known direction's program has no sigma in it."""
+    if _static(sigma):
+        return x if sigma == 1 else -x
+    return sigma * x
+
+
 # where a save time lies, besides an element's index: at t0 (the initial state), or not reached
 AT_START, NOT_WRITTEN = -1, -2
 
@@ -188,7 +222,9 @@ class DenseOutput:
         t1: the end of the requested span.
         clock: static; None where alpha = (t - t_n) / h_n, else the index d of the time
             coordinate in z = (q, t, p, p_t) (a time-transformed run), dropped by ``view``.
-        direction: static; -1 for a run backwards in time (t1 < t0: its times decrease), else 1.
+        direction: the run's ``Direction``, sigma = sign(t1 - t0) (``.sigma``: -1 for a run
+            backwards in time, t1 < t0, whose times decrease; a Python int where the direction
+            was known while tracing, else an array, e.g. one per member under ``vmap``).
     """
 
     t: jax.Array
@@ -197,7 +233,7 @@ class DenseOutput:
     t_end: jax.Array
     t1: jax.Array
     clock: object = dataclasses.field(default=None, metadata=dict(static=True))
-    direction: int = dataclasses.field(default=1, metadata=dict(static=True))
+    direction: Direction = FORWARDS
 
     def view(self, z):
         """``(q, p)`` of states z (..., 2d) or, time-transformed, (..., 2d + 2)."""
@@ -213,10 +249,13 @@ def user_view(z, clock):
 
 
 def evaluate(dense, t):
-    """States at the times ``t`` (1-D) from ``dense``; NaN outside ``[t_0, t_end]`` (a run
-    backwards: in the run's own increasing time -t, where its elements were solved)."""
-    if dense.direction < 0:
-        dense, t = dataclasses.replace(dense, t=-dense.t, t_end=-dense.t_end, t1=-dense.t1, direction=1), -t
+    """States at the times ``t`` (1-D) from ``dense``; NaN outside ``[t_0, t_end]``, in the run's
+    own increasing time tau = sigma t, where its elements were solved (``Direction``)."""
+    sigma = dense.direction.sigma
+    if not _static(sigma) or sigma != 1:
+        into = lambda x: directed(x, sigma)
+        dense, t = dataclasses.replace(dense, t=into(dense.t), t_end=into(dense.t_end), t1=into(dense.t1),
+                                       direction=FORWARDS), into(t)
     N = dense.W.shape[0]
     starts = dense.t[:-1]
     n = jnp.clip(jnp.searchsorted(starts, t, side="left") - 1, 0, N - 1)  # a node: the element it ends

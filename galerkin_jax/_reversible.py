@@ -13,7 +13,7 @@ z_n and pulling the cotangent lambda_{n+1} back through the forward element at z
 with the element's derivative from the implicit function theorem (``_solve.implicit``), theta
 = (h, args, the method's arrays). The element of step -h is the element of -H with step +h:
 every Galerkin residual holds H through h DH, and (-h) DH = h D(-H) exactly in floating point,
-as in a run backwards in time (``_integrate._backwards``). The cost is two element solves and
+as in a run backwards in time (``_integrate._directed``). The cost is two element solves and
 one transposed linear solve per element, against one solve and one linear solve of the stored
 gradient; the memory is one block's carry, whatever the number of elements.
 """

@@ -97,8 +97,8 @@ class Status(enum.IntEnum):
             equations may have no real solution).
         NONFINITE: 2, NaN or inf in the element unknowns.
         INVALID_INPUT: 3, a traced ``h <= 0``, a non-finite initial state, a traced save time outside
-            [t0, t1], or a traced t1 < t0 under ``jit`` or ``vmap`` (a run backwards needs t0 and t1
-            whose order is known when it is traced).
+            [t0, t1] (or, in a run whose direction is traced, out of the run's order), or a traced
+            t1 < t0 of ``LagrangianVI``, which has no run backwards.
         MAX_STEPS: 4, a controller's run used ``max_steps`` attempts before ``t1`` (fixed steps:
             ``t1`` lies beyond the ``max_steps`` elements reserved).
         DTMIN: 5, a step was rejected at ``dtmin`` (or at the round-off of t).
@@ -129,8 +129,8 @@ MESSAGES = {
         "unless krylov=True, which a stiff one (h omega >~ 1) needs."
     ),
     Status.NONFINITE: "NaN or inf in the element unknowns; check H, args and the initial state.",
-    Status.INVALID_INPUT: ("Invalid traced input: h <= 0, a non-finite initial state, or t1 < t0 traced under jit or "
-                           "vmap (a run backwards needs t0 and t1 whose order is known when it is traced)."),
+    Status.INVALID_INPUT: ("Invalid traced input: h <= 0, a non-finite initial state, a save time outside [t0, t1] "
+                           "or out of the run's order, or t1 < t0 with LagrangianVI (which has no run backwards)."),
     Status.MAX_STEPS: (
         "The run reached max_steps (accepted and rejected steps together) before t1; raise "
         "max_steps or loosen the tolerance."

@@ -28,12 +28,16 @@ def known(x):
     return None if x is None or jnp.ndim(x) != 0 else float(x)
 
 
-def backwards(t0, t1):
-    """The run goes backwards in time, t1 < t0, as far as it is known while tracing: under
-    ``jit`` or ``vmap`` a traced t1 < t0 is INVALID_INPUT at run time (the direction decides what
-    is compiled)."""
+def direction(t0, t1, dtype):
+    """sigma = sign(t1 - t0), the run's direction (1 without a t1): a Python int where t0 and
+    t1 are known while tracing (``known``), else traced, -1 where t1 < t0 and 1 elsewhere (under
+    ``jit`` or ``vmap`` over t1: the run's order is known only when it runs)."""
+    if t1 is None:
+        return 1
     a, b = known(t0), known(t1)
-    return a is not None and b is not None and b < a
+    if a is not None and b is not None:
+        return -1 if b < a else 1
+    return jnp.where(jnp.asarray(t1, dtype) < jnp.asarray(t0, dtype), -1.0, 1.0).astype(dtype)
 
 
 def _scalar(name, x):
@@ -131,9 +135,10 @@ def check_nodes(save_at, save_every):
     return False
 
 
-def check_save_at(save_at, t0, t1, dtype):
-    """``save_at`` as a 1-D array, sorted in the run's direction (non-decreasing; non-increasing
-    in a run backwards, t1 < t0), between t0 and t1; None stays None."""
+def check_save_at(save_at, t0, t1, dtype, sigma=1):
+    """``save_at`` as a 1-D array, sorted in the run's direction ``sigma`` (``direction``:
+    non-decreasing; non-increasing in a run backwards, t1 < t0), between t0 and t1, where these
+    are known while tracing (else the run checks them, ``_adaptive.run``); None stays None."""
     if save_at is None:
         return None
     ts = jnp.asarray(save_at, dtype)
@@ -143,10 +148,12 @@ def check_save_at(save_at, t0, t1, dtype):
         values = np.asarray(ts)
         if not np.all(np.isfinite(values)):
             raise ValueError("save_at must hold finite times.")
-        backwards = concrete(t0, t1) and float(t1) < float(t0)
+        if not isinstance(sigma, int):  # the direction is known when the run runs
+            return ts
+        backwards = sigma == -1
         _check_order(values, backwards)
-        if concrete(t0, t1):
-            lo, hi = sorted((float(t0), float(t1)))
+        if known(t0) is not None and known(t1) is not None:
+            lo, hi = sorted((known(t0), known(t1)))
             if values.min() < lo or values.max() > hi:
                 span = "[t1, t0]" if backwards else "[t0, t1]"
                 raise ValueError(f"save_at must lie in {span} = [{lo}, {hi}], got [{values.min()}, {values.max()}].")

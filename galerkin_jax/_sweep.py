@@ -23,7 +23,7 @@ from ._explicit import sweep_form
 from ._integrate import DEFAULT_MAX_STEPS, solution
 from ._output import user_view
 from ._march import bind_args, march, nan_if_failed, reserved_to_t1, short_of_t1, solver_options
-from ._solve import throw_if_failed
+from ._solve import Status, throw_if_failed
 from ._pytree import pytree_dataclass
 
 
@@ -243,8 +243,9 @@ def sweep(
         configs: ``Configs`` with batch size B (e.g. from ``grid``).
         n_steps: elements per configuration. Static. Give it or ``t1``.
         t0: start time.
-        t1: end time, which every configuration reaches (fixed steps: its last element
-            shortened; members of a smaller h take more elements).
+        t1: end time > t0, which every configuration reaches (fixed steps: its last element
+            shortened; members of a smaller h take more elements). A traced t1 < t0 is status
+            INVALID_INPUT; runs backwards in time are ``integrate``'s (under ``vmap`` over t1).
         controller: None, ``PIDController`` or ``TimeTransform`` (as in ``integrate``); the
             fields of a ``PIDController`` may have shape (B,) to sweep tolerances.
         max_steps: a controller's cap on attempts per configuration (default 4096); with fixed
@@ -276,6 +277,10 @@ def sweep(
         ``SweepResult`` with a leading axis B on every field.
     """
     _span.check_span(n_steps, t0, t1, controller)
+    sigma = _span.direction(t0, t1, float)
+    if isinstance(sigma, int) and sigma == -1:
+        raise ValueError("sweep runs forwards in time (t1 > t0); a run backwards is integrate's (under vmap, "
+                         "with t1 per member).")
     batch_size = _check_batch_size(batch_size, devices, progress)
     if t1 is not None and save_every is not None:
         raise ValueError("save_every needs n_steps: a sweep to t1 saves no trajectory.")
@@ -320,6 +325,10 @@ def sweep(
                                checkpoint, batch_size, inputs[0], inputs[1], *span, inputs[2])
     if devices is not None:
         result = jax.tree.map(lambda x: x[: configs.size], result)
+    if not isinstance(sigma, int):  # a traced t1 < t0 is bad input (a concrete one raises above)
+        status = jnp.where(sigma < 0, Status.INVALID_INPUT, result.status).astype(result.status.dtype)
+        result = dataclasses.replace(result, status=status, q=nan_if_failed(result.q, status),
+                                     p=nan_if_failed(result.p, status))
     if throw:
         throw_if_failed(result.status)
     return result
