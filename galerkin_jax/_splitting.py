@@ -84,9 +84,9 @@ class Splitting(AbstractMethod):
         "blanes_moan6": order 6, the PRK method S10 [Blanes & Moan 2002], 10 forces.
         "blanes_moan_rkn4": order 4 where T is quadratic in p, SRKN_6^b [Blanes & Moan 2002], 6 forces.
         "blanes_moan_rkn6": order 6 where T is quadratic in p, SRKN_11^b [Blanes & Moan 2002], 11 forces.
-    The RKN schemes keep their symplecticity and symmetry on any separable H, but on a T
-    that is not quadratic their order may fall: with T = sum sqrt(1 + p^2) SRKN_11^b
-    measures 4, SRKN_6^b still 4 (``tests/test_splitting.py``).
+    The RKN schemes are refused (a ValueError) where ``gj.structure`` does not read T as
+    quadratic in p (``Structure.kinetic_quadratic``): on T = sum sqrt(1 + p^2) SRKN_11^b's order
+    falls to 4.
 
     H must be separable as ``gj.structure`` reads it (a ValueError otherwise), and the steps
     fixed or saved at given times: a ``PIDController`` is refused (its estimate measures the
@@ -132,12 +132,18 @@ class Splitting(AbstractMethod):
         return sum(x != 0.0 for x in b) - (b[0] != 0.0 and b[-1] != 0.0)
 
     def premise(self, H, q0, p0):
-        """A ValueError where H (``H(q, p)``, args bound) does not read as separable."""
+        """A ValueError where H (``H(q, p)``, args bound) does not read as separable, or, for an RKN
+        scheme, its T as quadratic in p (``gj.structure``)."""
         found = structure(H, q0, p0)
         if not found.separable:
             raise ValueError(f"Splitting({self.scheme!r}) needs a separable H = T(p) + V(q), and this H reads as "
                              f"general ({found.reason}; gj.structure): use GalerkinVI, CG or a Composition of "
                              "them, which need no structure.")
+        if SCHEMES[self.scheme][3] and not found.kinetic_quadratic:
+            raise ValueError(f"Splitting({self.scheme!r}) is a Runge-Kutta-Nystrom scheme: it has its order where T "
+                             "is quadratic in p with a constant matrix, and this H's d^2H/dp^2 reads p (gj.structure's "
+                             "kinetic_quadratic is False): use 'blanes_moan4' or 'blanes_moan6', whose order holds "
+                             "for any T.")
 
     def explicit_start(self, H, q0, p0):
         """The force at q0, which the first kick of the first element uses."""

@@ -30,12 +30,17 @@ class Structure:
         force_reads_p: dH/dq may depend on p.
         velocity_reads_q: dH/dp may depend on q.
         reason: why H reads as general ("" where separable).
+        kinetic_quadratic: True where moreover T is quadratic in p with a constant matrix,
+            T = p^T M p / 2 + b^T p + c: the Hessian d^2H/dp^2 reads neither q nor p, as a
+            program (a Runge-Kutta-Nystrom splitting has its order there). False where it may
+            not be so: never a wrong True.
     """
 
     separable: bool
     force_reads_p: bool
     velocity_reads_q: bool
     reason: str = ""
+    kinetic_quadratic: bool = False
 
 
 class _Undecidable(Exception):
@@ -117,7 +122,7 @@ def structure(H, q0, p0, args=None) -> Structure:
     Traces ``jax.grad(H, argnums=(0, 1))`` at the shapes and dtypes of ``q0, p0`` (and
     ``args``, whose values are constants of the analysis) and follows each value's
     dependencies on q and p through the jaxpr: H is separable where dH/dq reads no p and
-    dH/dp no q. Sound, not complete: a term that cancels only by value reads as general
+    dH/dp no q; its T is quadratic where, moreover, the Hessian d^2H/dp^2 reads neither. Sound, not complete: a term that cancels only by value reads as general
     (``docs/methods.md``, "Explicit elements"). A separable H lets ``GalerkinVI(1,
     gj.trapezoid())`` (Stormer-Verlet) and its compositions run without iteration.
 
@@ -145,4 +150,16 @@ def structure(H, q0, p0, args=None) -> Structure:
     force_reads_p = any(b & _P for b in out[:n_q])
     velocity_reads_q = any(b & _Q for b in out[n_q:])
     reasons = ["dH/dq reads p"] * force_reads_p + ["dH/dp reads q"] * velocity_reads_q
-    return Structure(not reasons, force_reads_p, velocity_reads_q, "; ".join(reasons))
+    quadratic = not reasons and _constant_in_p(H, operands, n_q, n_p)
+    return Structure(not reasons, force_reads_p, velocity_reads_q, "; ".join(reasons), quadratic)
+
+
+def _constant_in_p(H, operands, n_q, n_p):
+    """Whether the program of d^2H/dp^2 reads neither q nor p (False where undecidable)."""
+    hessian = jax.jacfwd(jax.grad(H, argnums=1), argnums=1)
+    try:
+        closed = jax.make_jaxpr(hessian)(*operands)
+        out = _run(closed, [_Q] * n_q + [_P] * n_p + [0] * (len(closed.jaxpr.invars) - n_q - n_p))
+    except Exception:  # noqa: BLE001 -- what cannot be traced or read (effects) is not constant
+        return False
+    return not any(out)

@@ -69,14 +69,42 @@ def test_measured_order(name, ns):
     assert helpers.fitted_order(hs, errs, floor=1e-13) == pytest.approx(SCHEMES[name][0], abs=0.15)
 
 
-@pytest.mark.parametrize("name, order", [("blanes_moan4", 4), ("blanes_moan6", 6), ("blanes_moan_rkn4", 4),
-                                         ("blanes_moan_rkn6", 4)])
+@pytest.mark.parametrize("name, order", [("blanes_moan4", 4), ("blanes_moan6", 6)])
 def test_order_on_a_kinetic_energy_not_quadratic(name, order):
-    """The PRK schemes keep their order on any separable H; the RKN schemes need T quadratic:
-    with T = sum sqrt(1 + p^2) SRKN_11^b falls from 6 to 4 (measured 4.01; SRKN_6^b keeps 4.01)."""
+    """The PRK schemes keep their order on any separable H (T = sum sqrt(1 + p^2): measured 4.0
+    and 6.0); the RKN schemes need T quadratic (below)."""
     hs, errs = _errors(relativistic, jnp.array([1.0, -0.5]), jnp.array([0.4, 1.2]), gj.Splitting(name), 4.0,
                        (20, 40, 80))
     assert helpers.fitted_order(hs, errs, floor=1e-13) == pytest.approx(order, abs=0.15)
+
+
+M = jnp.array([[2.0, 0.5], [0.5, 1.0]])
+V4 = lambda q: jnp.sum(q ** 4)
+
+
+@pytest.mark.parametrize("T, quadratic", [
+    (lambda p: 0.5 * p @ p, True), (lambda p: 0.5 * jnp.sum(p ** 2), True), (lambda p: 0.5 * p @ M @ p, True),
+    (lambda p: jnp.sum(jnp.square(p) / jnp.array([2.0, 6.0])), True), (lambda p: 0.5 * p @ p + p[0], True),
+    (lambda p: jnp.sum(jnp.sqrt(1 + p * p)), False), (lambda p: jnp.sum(p ** 4), False),
+    (lambda p: 0.5 * p @ p + 0.0 * p[0] ** 3, False)])  # a cubic term that vanishes only by value
+def test_structure_reads_whether_t_is_quadratic(T, quadratic):
+    """``Structure.kinetic_quadratic``: d^2H/dp^2's program reads neither q nor p. Never a wrong
+    True (a term that vanishes by value reads as not quadratic); False for a non-separable H."""
+    found = gj.structure(lambda q, p: T(p) + V4(q), HH_Q0, HH_P0)
+    assert found.separable and found.kinetic_quadratic == quadratic
+    assert not gj.structure(lambda q, p: T(p) * (1 + q @ q), HH_Q0, HH_P0).kinetic_quadratic
+
+
+@pytest.mark.parametrize("name", ["blanes_moan_rkn4", "blanes_moan_rkn6"])
+def test_an_rkn_scheme_needs_a_quadratic_kinetic_energy(name):
+    """On T = sum sqrt(1 + p^2) SRKN_11^b's order falls from 6 to 4 (measured 4.01 before the
+    refusal), so an RKN scheme refuses a T that ``gj.structure`` does not read as quadratic, and
+    runs on one that it does: M constant and N-body masses in args."""
+    with pytest.raises(ValueError, match="Runge-Kutta-Nystrom scheme"):
+        gj.integrate(relativistic, HH_Q0, HH_P0, method=gj.Splitting(name), h=0.1, n_steps=10)
+    H = lambda q, p, m: 0.5 * jnp.sum(p ** 2 / m) + V4(q)
+    sol = gj.integrate(H, HH_Q0, HH_P0, method=gj.Splitting(name), h=0.1, n_steps=10, args=jnp.array([1.0, 3.0]))
+    assert int(sol.status) == 0
 
 
 @pytest.mark.parametrize("name", list(SCHEMES))
