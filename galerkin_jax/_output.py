@@ -151,6 +151,13 @@ class Direction:
     def __repr__(self):
         return f"Direction({self.sigma!r})"
 
+    def __eq__(self, other):
+        """Equal to its sigma: ``dense.direction == -1`` for a run backwards, as when it was an int."""
+        return self.sigma == (other.sigma if isinstance(other, Direction) else other)
+
+    def __hash__(self):
+        return hash(self.sigma)
+
 
 def _static(sigma):
     return isinstance(sigma, int) and not isinstance(sigma, bool)

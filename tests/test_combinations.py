@@ -426,3 +426,15 @@ def test_a_sweep_refuses_a_run_backwards():
         assert np.all(np.asarray(back.status) == gj.Status.INVALID_INPUT) and np.all(np.isnan(np.asarray(back.q)))
         assert np.all(np.asarray(ahead.status) == 0)
         np.testing.assert_allclose(ahead.q[:, 0], np.cos(1.0), atol=1e-8)
+
+
+def test_the_dense_outputs_direction_compares_as_its_sign():
+    """``DenseOutput.direction`` (a ``Direction`` since traced directions run) equals the sign of
+    t1 - t0, as the int it was: -1 backwards, 1 forwards; traced under ``vmap``, one per member."""
+    H = lambda q, p: 0.5 * (p @ p + q @ q)
+    run = lambda t1: gj.integrate(H, jnp.array([1.0]), jnp.array([0.0]), method=gj.CG(2, gj.gauss_legendre(2)),
+                                  h=0.1, t1=t1, controller=gj.PIDController(1e-8, 1e-8), dense=True)
+    assert run(-1.0).dense.direction == -1 and run(1.0).dense.direction == 1
+    assert run(1.0).dense.direction != -1
+    both = jax.vmap(run)(jnp.array([-1.0, 1.0])).dense.direction
+    assert jnp.array_equal(both == jnp.array([-1.0, 1.0]), jnp.array([True, True]))
