@@ -122,11 +122,7 @@ def sweep_form(method, H, q0, p0, args, solver):
     """``explicit_form`` for a sweep's stacked members: the structure read at member 0 (it reads
     shapes and dtypes alone, which the members share)."""
     member = lambda tree: jax.tree.map(lambda x: x[0], tree)
-    form = getattr(method, "explicit_form", None)
-    if not solver.explicit or form is None or not method.hamiltonian:
-        return method
-    explicit = form(cached_structure(H, member(q0), member(p0), None if args is None else member(args)))
-    return method if explicit is None else explicit
+    return explicit_form(method, H, member(q0), member(p0), None if args is None else member(args), solver)
 
 
 def _spec(tree):
