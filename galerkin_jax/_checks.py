@@ -16,7 +16,7 @@ import numpy as np
 
 from ._configs import Configs
 from ._state import Float32Warning, check_state, state_dtype, warn_if_low_precision  # noqa: F401
-from ._method import MEMBERS, check_method  # noqa: F401 (check_method: every entry point checks here)
+from ._method import MEMBERS, check_method, layers  # noqa: F401 (check_method: every entry point checks here)
 
 
 def _concrete(x):
@@ -159,11 +159,10 @@ def check_premise(method, H, q0, p0):
 
     if isinstance(method, ModifiedMidpoint):
         check_central_force(H, q0, p0)
-    while method is not None:
-        premise = getattr(method, "premise", None)
+    for layer in layers(method):
+        premise = getattr(layer, "premise", None)
         if callable(premise):
             premise(H, q0, p0)
-        method = getattr(method, "method", None)
 
 
 def check_sweep(H, configs, n_steps, save_every, invariants, reference):

@@ -64,7 +64,7 @@ class ExplicitVI(AbstractMethod):
 
     def explicit_start(self, H, q0, p0):
         """g(q0) = -dH/dq at the start of a run, the force the first element reuses."""
-        return -jax.grad(H, argnums=0)(q0, p0)
+        return force(H, q0, p0)
 
     def explicit_field(self, H, q1, p1, memo):
         """F(z1) at the end of an element whose memo is ``memo`` (``end_field``)."""
@@ -76,8 +76,8 @@ class ExplicitVI(AbstractMethod):
         W0, W1 = sum(w[i] for i in self.start), sum(w[i] for i in self.end)
         mu = h * W0 * g0
         P = p0 + mu
-        c = h * (W0 + W1) * jax.grad(H, argnums=1)(q0, P)  # T'(P): reads no q
-        g1 = -jax.grad(H, argnums=0)(q0 + c, P)  # -V'(q1): reads no p
+        c = h * (W0 + W1) * velocity(H, q0, P)  # T'(P): reads no q
+        g1 = force(H, q0 + c, P)  # -V'(q1): reads no p
         Z = jnp.stack([c, mu])  # GalerkinVI's unknowns (c_0 | mu_0)
         return Z, (c, h * (W0 * g0 + W1 * g1)), g1
 
@@ -85,7 +85,17 @@ class ExplicitVI(AbstractMethod):
 def end_field(H, q1, p1, g1):
     """Hamilton's field at an element's end, F(z1) = (T'(p1), g(q1)), from the force g1 = g(q1)
     that the element computed (its memo): one gradient of T, none of V."""
-    return jnp.concatenate([jax.grad(H, argnums=1)(q1, p1), g1])
+    return jnp.concatenate([velocity(H, q1, p1), g1])
+
+
+def force(H, q, p):
+    """g = -dH/dq, which for a separable H reads no p (-V'(q))."""
+    return -jax.grad(H, argnums=0)(q, p)
+
+
+def velocity(H, q, p):
+    """dH/dp, which for a separable H reads no q (T'(p))."""
+    return jax.grad(H, argnums=1)(q, p)
 
 
 def endpoint_indices(rule):

@@ -213,3 +213,11 @@ def describe_method(method):
     fields = dataclasses.fields(method) if dataclasses.is_dataclass(method) else ()
     static = ", ".join(f"{f.name}={getattr(method, f.name)!r}" for f in fields if f.metadata.get("static"))
     return f"{type(method).__name__}({static})"
+
+
+def layers(method):
+    """``method`` and the methods it wraps, outermost first (``method.method``: a composition's
+    method, an explicit form's iterated one)."""
+    while method is not None:
+        yield method
+        method = getattr(method, "method", None)

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._controllers import Event, PIDController, TimeTransform, check_values, concrete_values
+from ._method import layers
 
 
 def concrete(*xs):
@@ -64,15 +65,6 @@ def check_span(n_steps, t0, t1, controller):
             raise ValueError(f"t1 must differ from t0 (t1 < t0 runs backwards), got t0 = t1 = {float(t0)}.")
 
 
-def _wraps(method, name):
-    """Whether ``method`` or a method it wraps (``method.method``) is of the class ``name``."""
-    while method is not None:
-        if type(method).__name__ == name:
-            return True
-        method = getattr(method, "method", None)
-    return False
-
-
 def check_controller(controller, method, batch=None):
     """Tolerances > 0 and the bounds of a ``PIDController`` (each field a scalar, or in a sweep
     of ``batch`` configurations also of shape (batch,)); methods a controller can drive."""
@@ -83,7 +75,7 @@ def check_controller(controller, method, batch=None):
             "LagrangianVI is given L(q, qdot), which has no Hamilton's field for the embedded "
             "estimate or the time transformation: use GalerkinVI on the matching H, or fixed steps."
         )
-    if _wraps(method, "Splitting"):
+    if any(type(m).__name__ == "Splitting" for m in layers(method)):
         why = ("its error estimate measures the interpolating cubic, not the splitting" if isinstance(
             controller, PIDController) else "the time-transformed K = s(q, p) (H + p_t) is not separable")
         raise ValueError(f"Splitting with a {type(controller).__name__}: {why}; use fixed steps (save_at and "

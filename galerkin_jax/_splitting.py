@@ -17,11 +17,10 @@ last force to the next element's first kick (first same as last).
 
 import dataclasses
 
-import jax
 import jax.numpy as jnp
 
 from ._composition import hermite_polynomial
-from ._explicit import end_field
+from ._explicit import end_field, force, velocity
 from ._method import AbstractMethod
 from ._pytree import pytree_dataclass
 from ._structure import structure
@@ -60,16 +59,6 @@ SCHEMES = {
                          _palindrome([0.123229775946271, 0.290553797799558, -0.127049212625417,
                                       -0.246331761062075, 0.357208872795928], 1), True),
 }
-
-
-def force(H, q, p):
-    """g = -dH/dq, which for a separable H reads no p (-V'(q))."""
-    return -jax.grad(H, argnums=0)(q, p)
-
-
-def velocity(H, q, p):
-    """dH/dp, which for a separable H reads no q (T'(p))."""
-    return jax.grad(H, argnums=1)(q, p)
 
 
 @pytree_dataclass

@@ -137,14 +137,13 @@ def structure(H, q0, p0, args=None) -> Structure:
     q0, p0 = jax.tree.map(shape, q0), jax.tree.map(shape, p0)
     field = jax.grad(H if args is None else (lambda q, p, a: H(q, p, a)), argnums=(0, 1))
     operands = (q0, p0) if args is None else (q0, p0, jax.tree.map(shape, args))
+    n_q, n_p = len(jax.tree.leaves(q0)), len(jax.tree.leaves(p0))
     try:
         closed = jax.make_jaxpr(field)(*operands)
     except Exception as e:  # noqa: BLE001 -- what cannot be traced cannot be read: general
         return Structure(False, True, True, f"undecidable: dH/dq, dH/dp could not be traced ({type(e).__name__})")
-    n_q, n_p = len(jax.tree.leaves(q0)), len(jax.tree.leaves(p0))
-    n_args = len(closed.jaxpr.invars) - n_q - n_p
     try:
-        out = _run(closed, [_Q] * n_q + [_P] * n_p + [0] * n_args)
+        out = _outputs_read(closed, n_q, n_p)
     except _Undecidable as e:
         return Structure(False, True, True, f"undecidable: {e}")
     force_reads_p = any(b & _P for b in out[:n_q])
@@ -154,12 +153,16 @@ def structure(H, q0, p0, args=None) -> Structure:
     return Structure(not reasons, force_reads_p, velocity_reads_q, "; ".join(reasons), quadratic)
 
 
+def _outputs_read(closed, n_q, n_p):
+    """The dependency bits of a traced function's outputs, its inputs n_q leaves of q, n_p of p
+    and then args (constants of the analysis)."""
+    return _run(closed, [_Q] * n_q + [_P] * n_p + [0] * (len(closed.jaxpr.invars) - n_q - n_p))
+
+
 def _constant_in_p(H, operands, n_q, n_p):
     """Whether the program of d^2H/dp^2 reads neither q nor p (False where undecidable)."""
     hessian = jax.jacfwd(jax.grad(H, argnums=1), argnums=1)
     try:
-        closed = jax.make_jaxpr(hessian)(*operands)
-        out = _run(closed, [_Q] * n_q + [_P] * n_p + [0] * (len(closed.jaxpr.invars) - n_q - n_p))
+        return not any(_outputs_read(jax.make_jaxpr(hessian)(*operands), n_q, n_p))
     except Exception:  # noqa: BLE001 -- what cannot be traced or read (effects) is not constant
         return False
-    return not any(out)
