@@ -135,8 +135,10 @@ class Composition(AbstractMethod):
     estimate measures that cubic, not the composition.
 
     Args:
-        method: the symmetric method composed (a ``Composition`` too).
-        scheme: a name above, or a tuple of coefficients (symmetric, summing to 1). Static.
+        method: the symmetric one-step method composed, e.g. ``CG(1, gauss_legendre(1))`` or
+            another ``Composition``; required.
+        scheme: the stage coefficients gamma_i, a name above or a tuple of numbers (symmetric,
+            summing to 1); default ``"yoshida4"``, order 4 in 3 stages. Static.
     """
 
     method: AbstractMethod

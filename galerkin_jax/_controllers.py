@@ -305,15 +305,20 @@ class TimeTransform:
 
 @pytree_dataclass
 class Event:
-    """A sign change of ``g(t, q, p)`` (a scalar), located on the element polynomial.
+    """A sign change of ``g(t, q, p)`` (a scalar) to locate, passed as ``integrate(..., events=)``.
+
+    Each crossing is located on the element polynomial and reported in ``Solution.events``.
 
     Args:
-        g: the event function; q and p in the state's own shape.
-        direction: 0 any crossing, +1 only upward (g from < 0 to >= 0), -1 only downward, in the
-            run's order: in a run backwards (t1 < t0) upward as t decreases.
-        terminal: end the run at the first event; its time and state are the run's last.
-        capacity: the number of events stored (``Solution.events``), an integer >= 1; later
-            ones are counted.
+        g: the event function ``g(t, q, p)``, returning a scalar; required. q and p arrive in the
+            state's own shape.
+        direction: which crossings count; default 0, any. +1 counts only upward ones (g from
+            < 0 to >= 0), -1 only downward ones, in the run's order: in a run backwards
+            (t1 < t0) upward as t decreases.
+        terminal: end the run at the first crossing; default False. Its time and state are then
+            the run's last.
+        capacity: the number of events stored, an integer >= 1; default 64. Later events are
+            counted, not stored: raise it when ``Events.count`` exceeds it.
 
     Raises:
         TypeError: ``g`` not callable, ``direction`` or ``capacity`` not an integer, ``terminal``
@@ -358,12 +363,12 @@ class Events:
     """The events of a run (``Solution.events``), in the order found.
 
     Attributes:
-        t: ``(capacity,)`` event times, NaN in unused rows.
-        q: ``(capacity,) + shape`` the positions at the events, NaN in unused rows.
-        p: the momenta, likewise.
-        count: the number of events found (may exceed the capacity: the later ones are counted,
-            not stored).
-        ended: this event ended the run (a terminal event's first crossing).
+        t: the event times, shape ``(capacity,)``, NaN in unused rows.
+        q: the positions at the events, ``(capacity,) + shape``, NaN in unused rows.
+        p: the momenta at the events, likewise.
+        count: the number of events found; it may exceed the capacity, the later ones being
+            counted, not stored.
+        ended: whether this event ended the run (a terminal event's first crossing).
     """
 
     t: jax.Array

@@ -56,8 +56,12 @@ class CG(degree_and_rule("k", least=1)):
     ``z^h(alpha) = z_0 + sum_j C_j A_j(alpha)`` and ``z_1 = z_0 + C_0``.
 
     Args:
-        k: degree, k >= 1. Static: a new k means a new compilation.
-        quadrature: rule on [0, 1]; its arrays may be traced, vmapped and differentiated.
+        k: the polynomial degree of the trial functions on each element, an integer >= 1;
+            required. The order at the nodes is 2k with k Gauss points. Static: a new k means a
+            new compilation.
+        quadrature: the quadrature rule on [0, 1] for the integrals that contain DH, e.g.
+            ``gauss_legendre(k)``; required. Its arrays may be traced, vmapped and
+            differentiated.
     """
 
     fixed_point = True  # R = C - h (...): dR/dC = I at h = 0, so Z <- Z - R(Z) contracts for small h
@@ -96,8 +100,11 @@ class DG(degree_and_rule("k", least=0)):
     Unknowns: ``a`` of shape ``(k + 1, 2d)`` with ``z^h(alpha) = z_0 + sum_j a_j P_j(2 alpha - 1)``.
 
     Args:
-        k: degree, k >= 0. Static.
-        quadrature: rule on [0, 1]; its arrays may be traced, vmapped and differentiated.
+        k: the polynomial degree of the trial and test functions on each element, an integer
+            >= 0; required. Static: a new k means a new compilation.
+        quadrature: the quadrature rule on [0, 1] for the integrals that contain DH, e.g.
+            ``gauss_radau(k + 1)``; required. Its arrays may be traced, vmapped and
+            differentiated.
     """
 
     partition_axis = -1  # a's q | p columns; residual(..., part=): the sweep of ``_march.element_residual``

@@ -24,37 +24,42 @@ DEFAULT_MAX_STEPS = 4096  # attempts of a run whose steps a controller chooses (
 
 @pytree_dataclass
 class Solution:
-    """Saved states of ``integrate``.
+    """The result of ``integrate``: the saved states, the run's status and its counts.
 
     Attributes:
-        t: shape ``(m,)``: the save times (``save_at``); for fixed steps every ``save_every``-th
-            node from ``t0`` (``m = n_steps // save_every + 1``); for a controller's run without
-            ``save_at``, ``[t0, t_end]``.
-        q: the positions at ``t``, of shape ``(m,) + shape`` for states of that shape
-            (``(m, d)`` for 1-D states; a pytree state: its leaves with the leading axis m).
-            After the first failure the states are NaN; a run stopped by ``max_steps`` or
-            ``dtmin`` (status MAX_STEPS, DTMIN) keeps the time and state where it stopped, its
-            later save times NaN.
+        t: the save times, shape ``(m,)``: ``save_at`` where given; for fixed steps every
+            ``save_every``-th node from ``t0`` (``m = n_steps // save_every + 1``); for a run
+            with a controller or events and no ``save_at``, ``[t0, t_end]``.
+        q: the positions at ``t``, of shape ``(m,) + shape`` for states of that shape (``(m, d)``
+            for 1-D states; a pytree state: its leaves with the leading axis m). After the first
+            failure the states are NaN; a run stopped by ``max_steps`` or ``dtmin`` (status
+            MAX_STEPS, DTMIN) keeps the time and state where it stopped, its later save times NaN.
         p: the momenta at ``t``, likewise.
-        status: int32 ``Status`` code, 0 when every implicit solve converged. Status 0 promises
-            converged solves, not accurate steps: read ``error_estimate`` for that.
-        stats: ``num_newton_iterations`` (total), ``max_newton_iterations`` (largest count in
-            one element), ``batch_newton_iterations`` (the iterations the batch ran: under
-            ``vmap`` each element waits for the batch's slowest member), ``num_accepted_stalled``
-            (elements accepted other than at round-off: their updates stopped shrinking with the
-            residual below sqrt(eps) of the state, see ``Status``), as in diffrax
-            ``num_steps`` (every attempt), ``num_accepted_steps`` (the elements of the run) and
-            ``num_rejected_steps`` (the attempts not accepted: num_steps is their sum with the accepted;
-            a time-transformed run's are its tries at the last element; fixed steps reject none), ``min_step`` and ``max_step`` (the smallest and
-            largest accepted h; of a time-transformed run, in tau; of fixed steps h, where the
-            last element to t1 may be shorter).
+        status: the run's int32 ``Status`` code, 0 when every implicit solve converged. Status 0
+            promises converged solves, not accurate steps: read ``error_estimate`` for that.
+        stats: the run's counts, a dict of arrays:
+
+            - ``num_newton_iterations``: the iterations of the implicit solves, in total;
+            - ``max_newton_iterations``: the largest count in one element;
+            - ``batch_newton_iterations``: the iterations the batch ran (under ``vmap`` each
+              element waits for the batch's slowest member);
+            - ``num_accepted_stalled``: elements accepted other than at round-off (their updates
+              stopped shrinking with the residual below sqrt(eps) of the state, see ``Status``);
+            - ``num_steps``: every attempt, as in diffrax, the sum of the two below;
+            - ``num_accepted_steps``: the elements of the run;
+            - ``num_rejected_steps``: the attempts not accepted (a time-transformed run's are its
+              tries at the last element; fixed steps reject none);
+            - ``min_step``, ``max_step``: the smallest and largest accepted h (of a
+              time-transformed run, in tau; of fixed steps h, where the last element to t1 may
+              be shorter).
         error_estimate: the largest estimated local (one-element) error of the run, max-norm
             over (q, p), shape (); NaN for a failed run and for ``LagrangianVI``.
-        dense: ``DenseOutput`` with ``integrate(..., dense=True)``, else None.
-        events: ``Events`` with ``integrate(..., events=Event(...))`` (a list of them for a list of
-            events), else None.
-        layout: static; the layout of a state that is not one 1-D array (``_shape.Layout``),
+        dense: the element polynomials, a ``DenseOutput``, with ``integrate(..., dense=True)``;
             else None.
+        events: the located events, an ``Events`` with ``integrate(..., events=Event(...))`` (a
+            list of them for a list of events); else None.
+        layout: the layout of a state that is not one 1-D array (``_shape.Layout``), else None.
+            Static.
     """
 
     t: jax.Array
@@ -119,16 +124,23 @@ def step(H, q, p, *, method, h, args=None, max_newton_iterations=None, krylov=No
     A failed solve returns NaN states (never a plausible one).
 
     Args:
-        H: ``H(q, p)`` or ``H(q, p, args)`` returning a scalar (``L(q, qdot)`` for LagrangianVI).
-        q: array of any shape (``(d,)``, ``(N, 3)``, ...) or pytree of arrays; H receives it so.
-        p: of q's shape (structure).
-        method: e.g. ``CG(k, rule)``, ``DG(k, rule)``.
-        h: step size, scalar > 0.
-        max_newton_iterations: as in ``integrate``.
-        krylov: as in ``integrate``.
-        solver: as in ``integrate``.
-        throw: as in ``integrate``.
-        return_status: also return the int32 ``Status`` code (works under jit).
+        H: the Hamiltonian, ``H(q, p)`` or ``H(q, p, args)`` returning a scalar; required. For
+            ``LagrangianVI`` it is the Lagrangian ``L(q, qdot)``.
+        q: the position at the element's start, an array of any shape (``(d,)``, ``(N, 3)``, ...)
+            or a pytree of arrays; required. H receives it so.
+        p: the momentum at the element's start, of q's shape (pytree structure); required.
+        method: the time-stepping scheme, e.g. ``CG(k, rule)``, ``DG(k, rule)``; required.
+        h: the step size, a scalar > 0; required.
+        args: the extra input of ``H``, passed as its third argument; default None.
+        max_newton_iterations: the iteration cap of the implicit solve; default None (48), as in
+            ``integrate``. Static.
+        krylov: solve by Newton-Krylov; default None (False), as in ``integrate``. Static.
+        solver: the implicit solve's options, a ``SolverOptions``; default None
+            (``SolverOptions()``), as in ``integrate``. Static.
+        throw: raise ``SolverError`` when the solve failed; default False. Outside ``jit`` only,
+            as in ``integrate``.
+        return_status: also return the int32 ``Status`` code; default False. Works under jit.
+
     Returns:
         ``(q1, p1)``, in the shape (structure) of q and p; ``(q1, p1, status)`` with ``return_status``.
     """
@@ -174,77 +186,96 @@ def integrate(
     progress=False,
     error_estimate=True,
 ) -> Solution:
-    """Integrate Hamilton's equations from ``t0`` over ``n_steps`` elements of size ``h``, or to ``t1``.
+    """Integrate Hamilton's equations from ``t0``, over ``n_steps`` elements of size ``h`` or to ``t1``.
 
-    Fixed steps are chained by a nested ``lax.scan`` (outer over saves, inner over
-    ``save_every`` elements), so memory is O(n_steps / save_every); to a ``t1`` the last element
-    is shortened to land on it. A ``controller`` chooses the steps (``_adaptive``): error per
-    step (``PIDController``) or a time transformation that keeps the method's structure
-    (``TimeTransform``).
+    Give ``n_steps`` for that many equal steps, or ``t1`` to end at a time. With ``t1`` a
+    ``controller`` may choose the steps: error per step (``PIDController``) or a time
+    transformation that keeps the method's structure (``TimeTransform``). Fixed steps are
+    chained by a nested ``lax.scan`` (outer over saves, inner over ``save_every`` elements), so
+    memory is O(n_steps / save_every); to a ``t1`` the last element is shortened to land on it.
 
     Args:
-        H: ``H(q, p)`` or ``H(q, p, args)`` (``L(q, qdot)`` for LagrangianVI).
-        q0: array of any shape (``(d,)``, ``(N, 3)``, ...) or pytree of arrays. H, the event's g
-            and the time transformation's s receive states in this shape; the solver works on
-            the flattened vectors (``_shape``), of length d = the number of elements of q0.
-        p0: of q0's shape (structure); the initial momentum for LagrangianVI too.
-        method: a method object (CG, DG, GalerkinVI, ...).
-        h: step size > 0 (a controller's first step; a time transformation's step in tau); may
-            be traced (vmap over step sizes). None (with a ``PIDController`` only): the first step is
-            picked by Hairer, Norsett and Wanner's starting step algorithm (Solving ODEs I, Sec. II.4),
-            as diffrax's.
-        n_steps: number of elements, a multiple of ``save_every``. Static. Give it or ``t1``.
-        t0: start time.
-        t1: end time, != t0; t1 < t0 runs backwards in time (not with LagrangianVI), also where t0
-            or t1 is traced (``jit``, ``vmap`` over t1 with members of both directions).
-        controller: None (fixed steps), ``PIDController`` or ``TimeTransform``; needs ``t1``.
-        max_steps: static cap on a controller's attempts (accepted and rejected; default
-            4096); with fixed steps to a traced ``t1`` or ``h``, the elements the scan reserves.
-        save_at: times between t0 and t1, sorted in the run's direction, at which to save the state (from the element
-            polynomials between nodes); ``Solution.t`` is then ``save_at``. ``"steps"``: every
-            accepted node, in the user's shapes (a controller's run: ``max_steps + 1`` rows,
-            t = inf and NaN states past the last node; ``num_accepted_steps + 1`` of them hold
-            nodes).
-        events: an ``Event`` or a list of them: every sign change of each g(t, q, p), located on the
-            element polynomials (``Solution.events``: an ``Events``, or a list of them).
-        args: pytree passed to ``H`` as third argument; may be traced.
-        save_every: store every ``save_every``-th state of a fixed-step run of ``n_steps``. Static.
-        max_newton_iterations: iteration cap per element, a shorthand for
-            ``SolverOptions.max_iterations`` (default 48; the fixed-point iteration counts in
-            blocks of two, an element of more than 32 unknowns starting with four, so a cap is
-            rounded up to a block's end there). Static.
-        krylov: a shorthand for ``SolverOptions.krylov`` (default False): solve by
-            Newton-Krylov (GMRES on Hessian-vector products) where the fixed-point iteration is
-            too slow in a system of more than 256 unknowns per element (k * 2d for cG(k),
-            (k + 1) * 2d for dG(k)), which without it has the fixed point only: stiff large
-            systems, h omega >~ 1, need it. dG(k >= 1) has no fixed point and always uses it.
-            Static.
-        solver: ``SolverOptions``, the implicit solve's options (default ``SolverOptions()``);
-            the two shorthands above replace their fields. Static.
-        throw: raise ``SolverError`` with the status's message when the status is nonzero.
-            Only outside ``jit``/``vmap``/``grad``: there the status is traced, and ``throw=True``
-            raises a ``TypeError`` before anything runs (read ``Solution.status`` instead).
-        checkpoint: rematerialise each saved block in reverse mode: a gradient then stores
-            one state per save instead of every element's residuals. A run whose steps are
-            chosen as it runs (a controller, ``save_at``, events) keeps, for a gradient, the
-            roots of its last 512 elements (at most 16 MiB) and solves the elements before them
-            again; ``checkpoint`` keeps sqrt(max_steps) of them (docs/derivatives.md).
-            ``"reversible"``: a gradient stores nothing but the saves: its backward pass
-            rebuilds each state by an element of step -h, z_n = Phi_{-h}(z_{n+1})
-            (``_reversible``), memory O(1) in n_steps at twice the element solves. For symmetric
-            methods (cG(k), GalerkinVI with a symmetric rule, ModifiedMidpoint, compositions)
-            and fixed steps of ``n_steps`` or to a concrete t1; elsewhere a ValueError. Static.
-        dense: keep every element's polynomial (``Solution.evaluate``); memory O(n_steps), or
-            O(max_steps) for a controller's run. Static.
-        progress: show a progress bar (tqdm if installed, else lines on stderr), ticked from
-            inside the compiled loop (fixed steps). Static.
-        error_estimate: ``Solution.error_estimate``, the largest local error (``_defect``):
-            True computes the full estimate on the four elements where the embedded one
-            (``embedded_error``, one field evaluation per element) peaks; ``"full"`` on every
+        H: the Hamiltonian, a function ``H(q, p)`` or ``H(q, p, args)`` that returns a scalar;
+            required. For ``LagrangianVI`` it is the Lagrangian ``L(q, qdot)``.
+        q0: the initial position, an array of any shape (``(d,)``, ``(N, 3)``, ...) or a pytree
+            of arrays; required. H, an event's g and a time transformation's s receive states in
+            this shape; the solver works on the flattened vectors of length d, the number of
+            elements of q0.
+        p0: the initial momentum, of q0's shape (pytree structure); required, for
+            ``LagrangianVI`` too.
+        method: the time-stepping scheme, a method object such as ``CG(2, gauss_legendre(2))``,
+            ``DG``, ``GalerkinVI``; required.
+        h: the step size, > 0; default None, which only a ``PIDController``'s run accepts: it
+            picks the first step by Hairer, Norsett and Wanner's starting step algorithm (Solving
+            ODEs I, Sec. II.4), as diffrax does. Under a controller h is the first step (a
+            ``TimeTransform``'s: the step in its fictive time tau); it may be traced (vmap over
+            step sizes).
+        n_steps: the number of elements of size h; default None, then give ``t1``. Static; a
+            multiple of ``save_every``.
+        t0: the start time; default 0.0.
+        t1: the end time, != t0; default None, then give ``n_steps``. t1 < t0 runs backwards in
+            time (not with ``LagrangianVI``), also where t0 or t1 is traced (``jit``, ``vmap``
+            over t1 with members of both directions).
+        controller: what chooses the steps; default None, fixed steps of size h. Pass a
+            ``PIDController`` for a short accurate run or a ``TimeTransform`` for a long one;
+            either needs ``t1``.
+        max_steps: the most step attempts, accepted and rejected, of a controller's run; default
+            None (4096). Raise it when a run ends with status MAX_STEPS; with fixed steps to a
+            traced ``t1`` or ``h`` it is required: the elements the scan reserves. Static.
+        save_at: the times at which to save the state; default None: every ``save_every``-th
+            node of fixed steps, ``[t0, t_end]`` of a run with a controller or events. Times
+            between t0 and t1, sorted in the run's direction, are read off the element
+            polynomials and become ``Solution.t``; ``"steps"`` saves every accepted node, in the
+            user's shapes (a controller's run: ``max_steps + 1`` rows, t = inf and NaN states past
+            the last node; ``num_accepted_steps + 1`` of them hold nodes).
+        events: the sign changes of functions g(t, q, p) to locate; default None. An ``Event``
+            or a list of them, each located on the element polynomials and reported in
+            ``Solution.events`` (an ``Events``, or a list of them).
+        args: the extra input of ``H``, passed as its third argument; default None. It may be
+            traced (differentiated, vmapped) without a new compilation.
+        save_every: the stride of the saved states of a fixed-step run of ``n_steps``; default 1,
+            every node. Raise it to store fewer states on a long run. Static.
+        max_newton_iterations: the implicit solve's iteration cap per element; default None
+            (``SolverOptions.max_iterations``, 48). A shorthand for that field of ``solver``; the
+            fixed-point iteration counts in blocks of two (an element of more than 32 unknowns
+            starting with four), so a cap is rounded up to a block's end there. Static.
+        krylov: solve by Newton-Krylov (GMRES on Hessian-vector products); default None
+            (``SolverOptions.krylov``, False). Turn it on for stiff systems (h omega >~ 1) of more
+            than 256 unknowns per element (k * 2d for cG(k), (k + 1) * 2d for dG(k)), which
+            without it have the fixed-point iteration only; dG(k >= 1) has no fixed point and
+            always uses it. Static.
+        solver: the implicit solve's options, a ``SolverOptions``; default None
+            (``SolverOptions()``). The two shorthands above replace their fields. Static.
+        throw: raise ``SolverError`` with the status's message when the status is nonzero;
+            default False (read ``Solution.status``). Only outside ``jit``/``vmap``/``grad``:
+            there the status is traced, and ``throw=True`` raises a ``TypeError`` before anything
+            runs.
+        checkpoint: what a reverse-mode gradient stores of the run; default False, every
+            element's residuals. True rematerialises each saved block, so a gradient stores one
+            state per save; ``"reversible"`` stores the saves only (see Notes). Static.
+        dense: keep every element's polynomial, for ``Solution.evaluate``; default False. Memory
+            O(n_steps), or O(max_steps) for a controller's run. Static.
+        progress: show a progress bar, ticked from inside the compiled loop (fixed steps);
+            default False. tqdm if installed, else lines on stderr. Static.
+        error_estimate: how ``Solution.error_estimate``, the largest local error (``_defect``),
+            is computed; default True, the full estimate on the four elements where the embedded
+            one (``embedded_error``, one field evaluation per element) peaks. ``"full"``: on every
             element (the exact maximum, at J + 1 field evaluations and J Jacobian products per
             element); False leaves it NaN. Static.
+
     Returns:
         ``Solution``.
+
+    Notes:
+        Gradients of a run whose steps are chosen as it runs (a controller, ``save_at``, events)
+        keep the roots of its last 512 elements (at most 16 MiB) and solve the elements before
+        them again; ``checkpoint=True`` keeps sqrt(max_steps) of them
+        ([Derivatives](derivatives.md#what-a-gradient-costs)). ``checkpoint="reversible"``
+        rebuilds each state in the backward pass by an element of step -h,
+        z_n = Phi_{-h}(z_{n+1}) (``_reversible``): memory O(1) in n_steps at twice the element
+        solves. It needs a symmetric method (cG(k), GalerkinVI with a symmetric rule,
+        ModifiedMidpoint, compositions) and fixed steps of ``n_steps`` or to a concrete t1;
+        elsewhere it raises a ValueError.
     """
     q0, p0, h = prepare(H, q0, p0, method, h, args)
     _span.check_span(n_steps, t0, t1, controller)
@@ -447,7 +478,18 @@ def amplification_matrix(H, q, p, *, method, h, args=None, solver=None) -> jax.A
 
     For a quadratic H this is the amplification matrix of the two-level scheme
     ``z_{k+1} = A z_0``; in general it is the Jacobian of the one-step map. A failed solve
-    gives a matrix of NaN. ``solver``: ``SolverOptions``, as in ``integrate``.
+    gives a matrix of NaN.
+
+    Args:
+        H: the Hamiltonian, ``H(q, p)`` or ``H(q, p, args)``; required.
+        q: the position at which the one-step map is differentiated, an array of any shape or a
+            pytree of arrays; required.
+        p: the momentum there, of q's shape (pytree structure); required.
+        method: the time-stepping scheme, e.g. ``CG(k, rule)``; required.
+        h: the step size, a scalar > 0; required.
+        args: the extra input of ``H``, passed as its third argument; default None.
+        solver: the implicit solve's options, a ``SolverOptions``; default None
+            (``SolverOptions()``), as in ``integrate``.
 
     Returns:
         shape ``(2d, 2d)`` in the ordering ``z = (q, p)``. A state of another shape or a

@@ -117,10 +117,10 @@ class DiscreteGradient(_Increment):
     Unknowns: the increment ``dz``, shape ``(1, 2d)``.
 
     Args:
-        line_points: m, the Gauss points of the line integral that gives the excess
-            H(z1) - H(z0) - DH(zbar) . dz (``_excess``): m >= 2, or 0 to take it from H
-            values alone (cheaper, but its round-off grows faster over long runs).
-            Static: a new value means a new compilation.
+        line_points: the number m of Gauss points of the line integral that gives the excess
+            H(z1) - H(z0) - DH(zbar) . dz (``_excess``), m >= 2; default 6. 0 takes it from H
+            values alone, cheaper, but its round-off grows faster over long runs. Static: a
+            new value means a new compilation.
     """
 
     line_points: int = dataclasses.field(default=LINE_POINTS, metadata=dict(static=True))

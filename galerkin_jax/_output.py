@@ -218,20 +218,23 @@ def fill_saves(saved, index, ts, element, z_end, n):
 class DenseOutput:
     """Every element's polynomial: ``z(t) = z_n + sum_j W[n, j] P_j(2 alpha - 1)`` on element n.
 
+    ``integrate(..., dense=True)`` returns it as ``Solution.dense``; read states from it with
+    ``Solution.evaluate(t)``.
+
     Attributes:
-        t: ``(N + 1,)`` node times (inf past the last element of a controller's run).
-        z: ``(N + 1, 2d)`` states at the nodes.
-        W: ``(N, m, 2d)`` Legendre coefficients of each element's polynomial minus its start:
-            the method's polynomial refined to the nodes' accuracy (``refined``; m = 2k + 1
-            for cG(k)), not the polynomial the element equations solve for.
-        t_end: the time up to which the run holds valid states (a failed run's last good node,
-            a terminal event's time): NaN after it.
+        t: the node times, ``(N + 1,)`` (inf past the last element of a controller's run).
+        z: the states at the nodes, ``(N + 1, 2d)``.
+        W: the Legendre coefficients of each element's polynomial minus its start, ``(N, m, 2d)``:
+            the method's polynomial refined to the nodes' accuracy (``refined``; m = 2k + 1 for
+            cG(k)), not the polynomial the element equations solve for.
+        t_end: the time up to which the run holds valid states (a failed run's last good node, a
+            terminal event's time); NaN after it.
         t1: the end of the requested span.
-        clock: static; None where alpha = (t - t_n) / h_n, else the index d of the time
-            coordinate in z = (q, t, p, p_t) (a time-transformed run), dropped by ``view``.
-        direction: the run's ``Direction``, sigma = sign(t1 - t0) (``.sigma``: -1 for a run
-            backwards in time, t1 < t0, whose times decrease; a Python int where the direction
-            was known while tracing, else an array, e.g. one per member under ``vmap``).
+        clock: None where alpha = (t - t_n) / h_n, else the index d of the time coordinate in
+            z = (q, t, p, p_t) (a time-transformed run), dropped by ``view``. Static.
+        direction: the run's ``Direction``, sigma = sign(t1 - t0): ``.sigma`` is -1 for a run
+            backwards in time (t1 < t0), whose times decrease; a Python int where the direction
+            was known while tracing, else an array, e.g. one per member under ``vmap``.
     """
 
     t: jax.Array

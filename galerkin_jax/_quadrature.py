@@ -39,8 +39,10 @@ class QuadratureRule:
     or zeros, which are not rules.
 
     Args:
-        points: shape ``(n_q,)`` or ``(B, n_q)``, in [0, 1].
-        weights: the same shape, each row summing to 1 (to ``weight_sum_tolerance``).
+        points: the quadrature points alpha_l in [0, 1], shape ``(n_q,)`` or ``(B, n_q)``;
+            required.
+        weights: the weights w_l, of the points' shape, each row summing to 1 (to
+            ``weight_sum_tolerance``); required.
     Raises:
         ValueError: shapes differ or are empty, values not finite, points outside [0, 1],
             or weights that do not sum to 1.
@@ -119,7 +121,11 @@ def _from_reference(x, w):
 
 
 def gauss_legendre(n) -> QuadratureRule:
-    """n-point Gauss-Legendre rule on [0, 1]; exact for polynomials of degree 2n - 1."""
+    """n-point Gauss-Legendre rule on [0, 1]; exact for polynomials of degree 2n - 1.
+
+    Args:
+        n: the number of points, an integer >= 1; required.
+    """
     _check_count(n, 1, "gauss_legendre")
     return _from_reference(*npleg.leggauss(int(n)))
 
@@ -128,6 +134,9 @@ def gauss_lobatto(n) -> QuadratureRule:
     """n-point Gauss-Lobatto rule on [0, 1] (both end points); exact to degree 2n - 3.
 
     Interior nodes are the roots of P'_{n-1}; the weights are 2 / (n (n - 1) P_{n-1}(x)^2).
+
+    Args:
+        n: the number of points, end points included, an integer >= 2; required.
     """
     _check_count(n, 2, "gauss_lobatto")
     n = int(n)
@@ -145,6 +154,11 @@ def gauss_radau(n, *, right=True) -> QuadratureRule:
     The right rule contains alpha = 1 (its nodes are those of Radau IIA); the left rule
     contains alpha = 0. Left nodes on [-1, 1]: roots of P_{n-1} + P_n; weights
     2 / n^2 at -1 and (1 - x) / (n^2 P_{n-1}(x)^2) elsewhere.
+
+    Args:
+        n: the number of points, an integer >= 1; required.
+        right: which end point the rule contains; default True, alpha = 1 (Radau IIA's
+            nodes). False: the left rule, with alpha = 0.
     """
     _check_count(n, 1, "gauss_radau")
     n = int(n)

@@ -16,89 +16,98 @@ class SolverOptions:
 
     The first group decides what a member may return (correctness); the rest only how fast it
     gets there (speed): whatever their values, an element is accepted by the stopping rule
-    (``_converged``) alone, and no value of them changes a root beyond round-off.
+    (``_converged``) alone, and no value of them changes a root beyond round-off. The defaults
+    suit most runs; the speed fields are for studies of the solver
+    ([The implicit solve](solver.md)).
 
     Attributes:
-        max_iterations: iterations per element after which a member fails with status 1. The
-            fixed-point iteration counts in blocks (``fixed_point_block``, ``first_block``), so
-            a cap is rounded up to a block's end there.
-        krylov: Newton by GMRES on Jacobian-vector products for systems of more than
-            ``dense_limit`` unknowns, which otherwise have the fixed point only: a stiff large
-            system (h omega >~ 1) needs it. It compiles a larger program.
-        noise: updates below ``noise * eps`` of the state are round-off (eps of the dtype):
-            they may stop shrinking without that meaning a slow matrix. The stopping rule
-            reads it.
-        tolerance: the error of an element's unknowns, relative to their size, at which it
-            stops iterating; 0 (the default): their round-off, eps. Above eps the iteration
-            error, below ``tolerance`` after the last update, adds to every element's error,
-            and systematically (the predictor's miss is smooth from element to element): the
-            conserved quantities of a method (energy, symplecticity, momentum) then hold to
-            about that per element, not to round-off. For runs whose target error is far above
-            round-off (docs/solver.md, "Iterating to a tolerance").
-        dense_limit (unknowns): the largest system that keeps a dense Newton matrix (n^2
-            memory per member, an n^3 inverse per refresh); above it Newton is Newton-Krylov.
-        small (unknowns): systems up to this size solve their first element by Newton (the
-            predictor has no history yet and a Newton update costs two to three fixed-point
-            ones), stay with Newton once switched, and refresh their matrix at a low rate;
-            under a ``PIDController`` (h changes in every element) and in a time-transformed
-            run (its matrices serve few elements: ``_solve.Options.short_lived_matrices``)
-            only the first.
-        sweep_dimension (degrees of freedom d): partitioned methods on states of more than
-            this iterate the Gauss-Seidel sweep's residual (``_march.element_residual``), which
-            contracts at about the square of the plain fixed point's rate; below it the sweep's
-            two half-residuals cost more than its rate saves.
-        theta_fixed_point (rate): a fixed-point member whose updates shrink by less than this
-            per update switches to Newton.
-        theta_newton (rate, small and large systems): a Newton member whose updates shrink by
-            less than this refreshes its matrix (a small system's refresh is cheap, a large
-            one's costs an n^3 inverse).
-        patience (iterations): a Newton member refreshes its matrix after this many iterations
-            with it in one element, however it contracts.
-        fixed_point_patience (iterations, small and large systems): a fixed-point member
-            switches to Newton after this many iterations in one element; at most half of
+        max_iterations: the iterations per element after which a member fails with status 1;
+            default 48. The fixed-point iteration counts in blocks (``fixed_point_block``,
+            ``first_block``), so a cap is rounded up to a block's end there.
+        krylov: solve systems of more than ``dense_limit`` unknowns by Newton with GMRES on
+            Jacobian-vector products; default False, the fixed point only there. A stiff large
+            system (h omega >~ 1) needs it; it compiles a larger program.
+        noise: the multiple of eps (of the dtype) below which updates of the state are round-off;
+            default 100. Such updates may stop shrinking without that meaning a slow matrix; the
+            stopping rule reads it.
+        tolerance: the error of an element's unknowns, relative to their size, at which it stops
+            iterating; default 0, their round-off (eps). Above eps the iteration error, below
+            ``tolerance`` after the last update, adds to every element's error, and
+            systematically (the predictor's miss is smooth from element to element): the
+            conserved quantities of a method (energy, symplecticity, momentum) then hold to about
+            that per element, not to round-off. For runs whose target error is far above
+            round-off ([Iterating to a tolerance](solver.md#iterating-to-a-tolerance)).
+        dense_limit: the largest system, in unknowns, that keeps a dense Newton matrix; default
+            256. Such a matrix costs n^2 memory per member and an n^3 inverse per refresh; above
+            the limit Newton is Newton-Krylov.
+        small: the largest system, in unknowns, treated as small; default 32. Small systems solve
+            their first element by Newton (the predictor has no history yet and a Newton update
+            costs two to three fixed-point ones), stay with Newton once switched, and refresh
+            their matrix at a low rate; under a ``PIDController`` (h changes in every element)
+            and in a time-transformed run (its matrices serve few elements:
+            ``_solve.Options.short_lived_matrices``) only the first.
+        sweep_dimension: the number of degrees of freedom d above which partitioned methods
+            iterate the Gauss-Seidel sweep's residual (``_march.element_residual``); default 8.
+            The sweep contracts at about the square of the plain fixed point's rate; below it the
+            sweep's two half-residuals cost more than its rate saves.
+        theta_fixed_point: the rate (shrink factor per update) above which a fixed-point member
+            switches to Newton; default 0.5.
+        theta_newton: the rates above which a Newton member refreshes its matrix, for small and
+            large systems; default (0.03, 0.25). A small system's refresh is cheap, a large
+            one's costs an n^3 inverse.
+        patience: the iterations with one Newton matrix in one element after which a member
+            refreshes it, however it contracts; default 8.
+        fixed_point_patience: the iterations in one element after which a fixed-point member
+            switches to Newton, for small and large systems; default (12, 24). At most half of
             ``max_iterations`` (``fixed_point_patience_for``), so that Newton is always reached.
-        attempt_matrices (matrices): under a ``PIDController``, the fresh dense Newton matrices
-            an attempt may take (Newton-Krylov directions are not counted); one that asks for
-            another fails (status 1), and the controller retries it with a shorter h. A step
-            the fixed point cannot take and Newton needs more matrices for is a step too long:
-            a shorter attempt costs less than more matrices at this one, which from the
-            continued polynomial often end at another root of the element equations or at
-            ``max_iterations``. Every step of the watchdog (``watch``) and every damped step
-            asks for a fresh matrix, so under a controller they get at most this many.
-        newton_stretch (elements): a large system that switched to Newton stays with it this
-            long, then tries the fixed point again (one hard element does not cost it the run);
-            under a controller or a time transformation, where h or the state moves on fast, only
-            while its matrix serves: an element of the stretch that needs a fresh one ends it.
-        fixed_point_block (iterations): fixed-point updates per check (a check costs more
-            kernels than an update).
-        first_block (iterations): the first block of an element of more than ``small``
-            unknowns (it needs four to six updates; the check after two never accepts).
-        stragglers: a batch of at least ``8 * stragglers`` members iterates its last
-            ``1 / stragglers`` apart, gathered, so that it does not pay for its slowest members.
-        refresh_share: a batch refreshes at most ``max(8, B // refresh_share)`` matrices per
-            iteration (gathered, so the work follows the members that ask).
-        watch (iterations): in an element whose predictor is the constant guess (a run's
-            first, ``step``), a full Newton step with a fresh matrix that raises
-            the residual is taken anyway, and so are the fresh steps after it until the residual is below where
-            it started, of which at most ``watch`` may raise it again; then the steps are halved
-            for the rest of the element (the watchdog: far from the root, plain Newton's first
-            step can raise the residual and still lead to the root in a few more). 0: halving
-            from the first such step.
-        min_damping: the smallest fraction of a Newton step tried before the step is taken as
-            it is (halving from 1).
-        doubtful_start: a predictor whose residual is not below this fraction of the unknowns
-            competes with the constant guess (a continued polynomial can overshoot at large
-            h omega).
+        newton_stretch: the elements a large system that switched to Newton stays with it before
+            it tries the fixed point again; default 16. One hard element does not cost it the
+            run; under a controller or a time transformation, where h or the state moves on
+            fast, only while its matrix serves: an element of the stretch that needs a fresh one
+            ends it.
+        attempt_matrices: the fresh dense Newton matrices an attempt under a ``PIDController``
+            may take; default 2 (Newton-Krylov directions are not counted). One that asks for
+            another fails (status 1), and the controller retries it with a shorter h: a step the
+            fixed point cannot take and Newton needs more matrices for is a step too long, and a
+            shorter attempt costs less than more matrices at this one, which from the continued
+            polynomial often end at another root of the element equations or at
+            ``max_iterations``. Every step of the watchdog (``watch``) and every damped step asks
+            for a fresh matrix, so under a controller they get at most this many.
+        fixed_point_block: the fixed-point updates per convergence check; default 2 (a check
+            costs more kernels than an update).
+        first_block: the updates of the first block of an element of more than ``small``
+            unknowns; default 4 (it needs four to six updates; the check after two never
+            accepts).
+        stragglers: the share, 1 / ``stragglers``, of a batch's slowest members that iterate
+            apart, gathered; default 8. It applies to batches of at least ``8 * stragglers``
+            members, so that a batch does not pay for its slowest members.
+        refresh_share: a batch of B members refreshes at most ``max(8, B // refresh_share)``
+            matrices per iteration; default 8 (gathered, so the work follows the members that
+            ask).
+        watch: the watchdog's allowance of Newton steps that raise the residual again; default 4.
+            In an element whose predictor is the constant guess (a run's first, ``step``), a full
+            Newton step with a fresh matrix that raises the residual is taken anyway, and so are
+            the fresh steps after it until the residual is below where it started, of which at
+            most ``watch`` may raise it again; then the steps are halved for the rest of the
+            element (far from the root, plain Newton's first step can raise the residual and
+            still lead to the root in a few more). 0: halving from the first such step.
+        min_damping: the smallest fraction of a Newton step tried before the step is taken as it
+            is (halving from 1); default 1/64.
+        doubtful_start: the residual, as a fraction of the unknowns, at or above which a
+            predictor competes with the constant guess; default 0.1 (a continued polynomial can
+            overshoot at large h omega).
         miss_orders: the orders of extrapolation of the predictor's misses it chooses from
-            (``_march.miss_correction``; one or more, the lowest first): the high one where the
-            misses are smooth, the low one where they are not.
-        krylov_tolerance, krylov_restart, krylov_restarts: GMRES's relative residual (each
-            update leaves this much of the error, so the updates reach the floor in two or
-            three), its restart length and the number of restarts.
-        explicit: compute an element in closed form, without iteration, where the method has
-            an explicit form for the structure read from H (``gj.structure``; e.g.
-            ``GalerkinVI(1, gj.trapezoid())`` on a separable H is Stormer-Verlet, docs/methods.md,
-            "Explicit elements"). The same root to round-off; False iterates it as any other.
+            (``_march.miss_correction``; one or more, the lowest first); default (2, 6). The high
+            one serves where the misses are smooth, the low one where they are not.
+        krylov_tolerance: GMRES's relative residual; default 1e-7. Each update leaves this much
+            of the error, so the updates reach the floor in two or three.
+        krylov_restart: GMRES's restart length; default 20.
+        krylov_restarts: GMRES's number of restarts; default 10.
+        explicit: compute an element in closed form, without iteration, where the method has an
+            explicit form for the structure read from H (``gj.structure``); default True. E.g.
+            ``GalerkinVI(1, gj.trapezoid())`` on a separable H is Stormer-Verlet
+            ([Explicit elements](methods.md#explicit-elements-and-compositions)). The same root
+            to round-off; False iterates it as any other.
     """
 
     max_iterations: int = 48

@@ -86,7 +86,9 @@ class Splitting(AbstractMethod):
     the Hermite cubic through the end states (``_composition.hermite_polynomial``).
 
     Args:
-        scheme: a name above. Static.
+        scheme: which kicks and drifts, a name above; default ``"blanes_moan4"`` (order 4 on
+            every separable H). Take an RKN scheme where T is quadratic in p, ``"leapfrog"``
+            for the cheapest step. Static.
     """
 
     scheme: str = dataclasses.field(default="blanes_moan4", metadata=dict(static=True))

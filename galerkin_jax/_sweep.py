@@ -239,40 +239,52 @@ def sweep(
     """Run every configuration of ``configs`` for ``n_steps`` elements, or to ``t1``, in one compiled call.
 
     Args:
-        H: ``H(q, p)`` or ``H(q, p, args)``.
-        configs: ``Configs`` with batch size B (e.g. from ``grid``).
-        n_steps: elements per configuration. Static. Give it or ``t1``.
-        t0: start time.
-        t1: end time > t0, which every configuration reaches (fixed steps: its last element
-            shortened; members of a smaller h take more elements). A traced t1 < t0 is status
-            INVALID_INPUT; runs backwards in time are ``integrate``'s (under ``vmap`` over t1).
-        controller: None, ``PIDController`` or ``TimeTransform`` (as in ``integrate``); the
+        H: the Hamiltonian, ``H(q, p)`` or ``H(q, p, args)``; required.
+        configs: the configurations to run, a ``Configs`` with batch size B (e.g. from ``grid``);
+            required.
+        n_steps: the number of elements per configuration; default None, then give ``t1``.
+            Static.
+        t0: the start time; default 0.0.
+        t1: the end time, > t0, which every configuration reaches; default None, then give
+            ``n_steps``. With fixed steps the last element is shortened and members of a smaller h
+            take more elements. A traced t1 < t0 is status INVALID_INPUT; runs backwards in time
+            are ``integrate``'s (under ``vmap`` over t1).
+        controller: what chooses the steps, as in ``integrate``; default None, fixed steps. The
             fields of a ``PIDController`` may have shape (B,) to sweep tolerances.
-        max_steps: a controller's cap on attempts per configuration (default 4096); with fixed
-            steps to t1 and traced step sizes, the elements reserved per member. Static.
-        invariants: ``{name: I(q, p)}`` whose relative change is tracked (e.g. angular momentum).
-        reference: ``(q_ref, p_ref)``, each like ``configs.q0`` (``(B,) + shape``), for ``final_error``.
-        save_every: store a trajectory with this stride (``SweepResult.solution``); default
-            none; fixed steps of ``n_steps`` only.
-        max_newton_iterations: the implicit solve's options, as in ``integrate``. Static.
-        krylov: as in ``integrate``. Static.
-        solver: as in ``integrate``. Static.
-        throw: raise ``SolverError`` when a configuration's status is nonzero, naming the
-            configurations (outside ``jit`` only, as in ``integrate``).
-        devices: shard the batch over these devices (e.g. ``jax.devices()``); results equal
-            the unsharded run (up to how XLA compiles the per-device batch size). Several hosts: call ``jax.distributed.initialize()`` first and
-            pass ``jax.devices()`` (all global devices).
-        checkpoint: rematerialise blocks of elements in reverse mode (blocks of ``save_every``,
-            or of the divisor of ``n_steps`` nearest its square root: choose an ``n_steps``
-            with one), so that a gradient stores one carry per block instead of every
+        max_steps: a controller's cap on attempts per configuration; default None (4096). With
+            fixed steps to t1 and traced step sizes it is required: the elements reserved per
+            member. Static.
+        invariants: the quantities whose largest relative change to track, ``{name: I(q, p)}``
+            (e.g. angular momentum); default None, energy only.
+        reference: the exact final state ``(q_ref, p_ref)``, each like ``configs.q0``
+            (``(B,) + shape``), for ``SweepResult.final_error``; default None.
+        save_every: the stride of a stored trajectory (``SweepResult.solution``); default None,
+            no trajectory. Fixed steps of ``n_steps`` only.
+        max_newton_iterations: the iteration cap of the implicit solve; default None (48), as in
+            ``integrate``. Static.
+        krylov: solve by Newton-Krylov; default None (False), as in ``integrate``. Static.
+        solver: the implicit solve's options, a ``SolverOptions``; default None, as in
+            ``integrate``. Static.
+        throw: raise ``SolverError`` naming the configurations whose status is nonzero; default
+            False. Outside ``jit`` only, as in ``integrate``.
+        devices: the devices to shard the batch over (e.g. ``jax.devices()``); default None, one
+            device. Results equal the unsharded run (up to how XLA compiles the per-device batch
+            size). Several hosts: call ``jax.distributed.initialize()`` first and pass
+            ``jax.devices()`` (all global devices).
+        checkpoint: rematerialise blocks of elements in reverse mode; default False. A gradient
+            then stores one carry per block (of ``save_every`` elements, or of the divisor of
+            ``n_steps`` nearest its square root: choose an ``n_steps`` with one) instead of every
             element's residuals; with a ``controller``, as in ``integrate``. Static.
-        progress: show a progress bar over the elements (all members advance together). Static.
-        error_estimate: True, "full" or False, as in ``integrate``. Static.
+        progress: show a progress bar over the elements (all members advance together); default
+            False. Static.
+        error_estimate: how ``SweepResult.error_estimate`` is computed: True, ``"full"`` or
+            False, as in ``integrate``; default True. Static.
         batch_size: run the configurations in chunks of this many, one chunk after another
-            (``jax.lax.map``), instead of all at once (``vmap``, the default). A chunk's run takes
-            as many elements as its longest member (its gradient's adjoint sweep, on a CPU, each
-            member's own): with a controller, ``batch_size=1`` makes each configuration's run
-            and gradient cost its own steps. Static.
+            (``jax.lax.map``); default None, all at once (``vmap``). A chunk's run takes as many
+            elements as its longest member (its gradient's adjoint sweep, on a CPU, each member's
+            own): with a controller, ``batch_size=1`` makes each configuration's run and gradient
+            cost its own steps. Static.
+
     Returns:
         ``SweepResult`` with a leading axis B on every field.
     """

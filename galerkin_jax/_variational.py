@@ -44,8 +44,11 @@ class GalerkinVI(degree_and_rule("s", least=1)):
     P = p_n + sum_i mu_i P_i (eq. (2.31), lambda_i shifted by the flux).
 
     Args:
-        s: degree of Q, s >= 1. Static.
-        quadrature: rule on [0, 1]; may be traced, vmapped and differentiated.
+        s: the polynomial degree of the position Q on each element, an integer >= 1;
+            required. Static: a new s means a new compilation.
+        quadrature: the quadrature rule on [0, 1] for the element's integrals, e.g.
+            ``gauss_legendre(s)``; required. Its arrays may be traced, vmapped and
+            differentiated.
     """
 
     fixed_point = True  # dR/dZ = I at h = 0
@@ -115,8 +118,11 @@ class LagrangianVI(degree_and_rule("s", least=1)):
     Unknowns, shape ``(s, d)``: the coefficients ``v``.
 
     Args:
-        s: degree of Q, s >= 1. Static.
-        quadrature: rule on [0, 1]; may be traced, vmapped and differentiated.
+        s: the polynomial degree of the position Q on each element, an integer >= 1;
+            required. Static: a new s means a new compilation.
+        quadrature: the quadrature rule on [0, 1] for the element's integrals, e.g.
+            ``gauss_legendre(s)``; required. Its arrays may be traced, vmapped and
+            differentiated.
     """
 
     # dR/dv at h = 0 is the mass matrix d^2 L / dqdot^2 along the element, not I: Z <- Z - R(Z)
