@@ -22,6 +22,19 @@ def suggest_step_size(H, q0, p0, *, method, tolerance, h, span, args=None, safet
     up to n times that for a dissipative method and typically ~sqrt(n) to n times for the
     symplectic ones. Make ``span`` cover the hardest part of the motion (e.g. a perihelion).
 
+    Args:
+        H: the Hamiltonian, ``H(q, p)`` or ``H(q, p, args)``; required.
+        q0: the initial position, as in ``integrate``; required.
+        p0: the initial momentum, of q0's shape; required.
+        method: the method whose step to choose, as in ``integrate``; required.
+        tolerance: the local (one-element) error wanted, > 0; required.
+        h: the pilot step, > 0; required. Take one near the answer, small enough for the
+            estimate to show its order.
+        span: the time the pilot runs cover, from t = 0; required.
+        args: the extra input of ``H``, passed as its third argument; default None.
+        safety: the factor < 1 on the predicted h; default 0.8.
+        max_halvings: the most times a pilot is repeated at half the step; default 8.
+
     Returns:
         ``(h, info)`` with ``info = {"order": r, "estimate": e(h_pilot), "pilot_h": h_pilot}``.
     """

@@ -26,6 +26,11 @@ def use_compilation_cache(folder=None):
     ``H`` function object (a lambda defined anew in each process is the same program if its
     code and closure are), another method degree, ``n_steps`` or ``max_steps``.
 
+    Args:
+        folder: the folder of the compiled programs; default None, ``compile_cache_folder()``:
+            ``$GALERKIN_JAX_CACHE``, else ``$XDG_CACHE_HOME/galerkin_jax/xla`` or
+            ``~/.cache/galerkin_jax/xla``.
+
     Returns:
         the folder, or None where ``$GALERKIN_JAX_CACHE`` is set but empty (no cache).
     """

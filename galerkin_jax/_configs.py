@@ -19,13 +19,14 @@ class Configs:
     """Configurations of a sweep: every leaf has a leading batch axis of size B.
 
     Attributes:
-        method: a method pytree with stacked quadrature arrays (see ``stack_methods``).
-        q0: shape ``(B, d)``, or ``(B,) + shape`` for states of any shape, or pytrees of
+        method: the methods, one method pytree with stacked quadrature arrays (see
+            ``stack_methods``).
+        q0: the initial positions, shape ``(B, d)``, or ``(B,) + shape`` for states of any shape, or pytrees of
             arrays whose leaves lead with B (``sweep`` flattens them; H sees each member's
             state in its shape).
-        p0: of q0's shape (structure).
-        h: shape ``(B,)``.
-        args: ``None`` or a pytree whose leaves have a leading axis B.
+        p0: the initial momenta, of q0's shape (structure).
+        h: the step sizes, shape ``(B,)``.
+        args: the extra inputs of H, ``None`` or a pytree whose leaves have a leading axis B.
     """
 
     method: Any
@@ -43,8 +44,8 @@ def pad_rule(rule, n) -> QuadratureRule:
     """The rule with zero-weight points at 1/2 appended up to ``n`` points; integrates the same.
 
     Args:
-        rule: a ``QuadratureRule`` with shape ``(n_q,)``.
-        n: the point count wanted, an integer >= n_q.
+        rule: the rule to pad, a ``QuadratureRule`` with shape ``(n_q,)``; required.
+        n: the point count wanted, an integer >= n_q; required.
     Returns:
         ``QuadratureRule`` with shape ``(n,)``; its weights have the same sum.
     """
@@ -86,7 +87,8 @@ def stack_methods(methods) -> AbstractMethod:
     to a common point count with ``pad_rule`` so that rules of any size share one batch.
 
     Args:
-        methods: a sequence of methods, e.g. ``[gj.CG(2, r) for r in rules]``.
+        methods: the methods to stack, a sequence of one kind and degree, e.g.
+            ``[gj.CG(2, r) for r in rules]``; required.
     Returns:
         one method whose quadrature arrays have shape ``(B, n_q)``.
     """
@@ -226,15 +228,16 @@ def grid(*, method, h, state, args=None) -> Configs:
     Each axis takes a list of values or a single value, which is one point of its axis.
 
     Args:
-        method: a method, or a list of methods of one kind and degree (e.g. all ``CG(2, rule)``;
-            rules of any size, see ``stack_methods``).
-        h: a step size > 0, or a list (tuple, 1-D array) of them.
-        state: one state ``(q0, p0)``, a pair of 1-D arrays of one length d (or of arrays of
-            any one shape, e.g. ``(N, 3)``, or of dicts of arrays of one structure), or a list
-            of such pairs, all of one shape.
-        args: None; a list, which is the axis (one args pytree per entry, all of one structure
-            and shape); or anything else (a number, an array, a tuple, a dict), which is one
-            args pytree shared by every configuration. One list as args: ``args=[[a, b]]``.
+        method: the method axis: a method, or a list of methods of one kind and degree (e.g.
+            all ``CG(2, rule)``; rules of any size, see ``stack_methods``); required.
+        h: the step-size axis: a step size > 0, or a list (tuple, 1-D array) of them; required.
+        state: the initial-state axis: one state ``(q0, p0)``, a pair of 1-D arrays of one
+            length d (or of arrays of any one shape, e.g. ``(N, 3)``, or of dicts of arrays of
+            one structure), or a list of such pairs, all of one shape; required.
+        args: the axis of H's extra input; default None. A list is the axis (one args pytree
+            per entry, all of one structure and shape); anything else (a number, an array, a
+            tuple, a dict) is one args pytree shared by every configuration. One list as args:
+            ``args=[[a, b]]``.
     Returns:
         ``Configs`` with B = the product of the axes' lengths, q0, p0 and h in the states' dtype.
     Raises:

@@ -60,7 +60,7 @@ class AbstractMethod(abc.ABC):
             rule leaves an iteration error below the round-off of ``Z`` that follows the
             predictor's smooth miss: where a method conserves a quantity to a small fraction of
             round-off a step, that error's part in it adds up over a long run.
-            ``DiscreteGradient`` takes 1 (docs/accuracy.md, "Round-off").
+            ``DiscreteGradient`` takes 1 ([Round-off](accuracy.md#round-off)).
         hamiltonian: a Python bool, True by default: the function the method is given is a
             Hamiltonian, whose field refines the element polynomial between the nodes (save
             times, events, dense output: ``_output.refined``); False for a method given a

@@ -122,14 +122,16 @@ def structure(H, q0, p0, args=None) -> Structure:
     Traces ``jax.grad(H, argnums=(0, 1))`` at the shapes and dtypes of ``q0, p0`` (and
     ``args``, whose values are constants of the analysis) and follows each value's
     dependencies on q and p through the jaxpr: H is separable where dH/dq reads no p and
-    dH/dp no q; its T is quadratic where, moreover, the Hessian d^2H/dp^2 reads neither. Sound, not complete: a term that cancels only by value reads as general
-    (``docs/methods.md``, "Explicit elements"). A separable H lets ``GalerkinVI(1,
+    dH/dp no q; its T is quadratic where, moreover, the Hessian d^2H/dp^2 reads neither.
+    Sound, not complete: a term that cancels only by value reads as general
+    ([Explicit elements](methods.md#explicit-elements-and-compositions)). A separable H lets ``GalerkinVI(1,
     gj.trapezoid())`` (Stormer-Verlet) and its compositions run without iteration.
 
     Args:
-        H: ``H(q, p)``, or ``H(q, p, args)`` with ``args`` given.
-        q0, p0: a state (arrays of any shape, or pytrees of them); only shapes and dtypes are read.
-        args: pytree passed to H as its third argument, or None.
+        H: the Hamiltonian, ``H(q, p)``, or ``H(q, p, args)`` with ``args`` given; required.
+        q0, p0: a state (arrays of any shape, or pytrees of them) whose shapes and dtypes
+            are read, not its values; required.
+        args: the extra input of H, passed as its third argument; default None.
     Returns:
         ``Structure``.
     """

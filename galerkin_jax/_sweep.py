@@ -32,16 +32,19 @@ class SweepResult:
     """Per-configuration diagnostics, each with a leading axis B.
 
     Attributes:
-        energy_error: max_n |H_n - H_0| / |H_0| (absolute where H_0 = 0) of the function
-            passed; for ``LagrangianVI`` that is L, not an energy: use ``invariants``.
-        invariant_errors: name -> max_n max_i |I_n - I_0|_i / max_i |I_0|_i (absolute where I_0 = 0).
-        final_error: max |(q_N, p_N) - reference| or None.
+        energy_error: the largest relative change of the function passed over the run,
+            max_n |H_n - H_0| / |H_0| (absolute where H_0 = 0); for ``LagrangianVI`` that is L,
+            not an energy: use ``invariants``.
+        invariant_errors: the largest relative change of each invariant, name ->
+            max_n max_i |I_n - I_0|_i / max_i |I_0|_i (absolute where I_0 = 0).
+        final_error: the final state's error against ``reference``,
+            max |(q_N, p_N) - reference|; None without a reference.
         q: the final position, ``(B,) + shape`` (a pytree state: each leaf with the leading axis B).
         p: the final momentum, likewise.
-        status: ``Status`` codes; NaN diagnostics go with a nonzero status.
+        status: each run's ``Status`` code; NaN diagnostics go with a nonzero status.
         error_estimate: the largest estimated local error of each run (``Solution.error_estimate``).
-        num_newton_iterations: Newton iterations of each run, in total.
-        max_newton_iterations: the largest count of one element.
+        num_newton_iterations: the iterations of each run's implicit solves, in total.
+        max_newton_iterations: each run's largest count in one element.
         batch_newton_iterations: the iterations the batch ran, the sum over elements of the
             largest member count (the same for every member; ``1 - num / batch`` is the share
             of the batch's iterations a member spent waiting for slower members; in a batch of
@@ -52,7 +55,7 @@ class SweepResult:
         num_steps: every attempt of each run, accepted or rejected (as in diffrax; fixed steps:
             the elements).
         num_accepted_steps: the accepted steps of each run.
-        num_rejected_steps: rejected steps of each run.
+        num_rejected_steps: the rejected steps of each run.
         solution: a batched ``Solution`` when ``save_every`` was given, else None; its
             ``stats`` are the Newton counts above.
     """

@@ -38,10 +38,12 @@ def tune_rule(loss, rule, *, optimizer=None, iterations=100) -> tuple[Quadrature
     """Minimise ``loss(rule)`` over the rule's points and weights with optax.
 
     Args:
-        loss: ``QuadratureRule -> scalar``, differentiable (e.g. built on ``gj.integrate``).
-        rule: the starting rule (points in (0, 1), weights > 0).
-        optimizer: an ``optax.GradientTransformation``; default ``optax.adam(0.05)``.
-        iterations: number of optimizer steps.
+        loss: the function to minimise, ``QuadratureRule -> scalar``, differentiable (e.g.
+            built on ``gj.integrate``); required.
+        rule: the starting rule, points in (0, 1) and weights > 0; required.
+        optimizer: the optimiser, an ``optax.GradientTransformation``; default None,
+            ``optax.adam(0.05)``.
+        iterations: the number of optimiser steps; default 100.
     Returns:
         ``(best_rule, history)`` with the loss before each step in ``history`` (NumPy array);
         the best rule seen is returned, not the last.
