@@ -63,7 +63,7 @@ class PIDController:
             ``factormin``. A failed solve says the step was too long for the solve, not by how
             much: a cut by 0.2 leaves the estimate so small that the controller grows h about
             four times and fails again ([Where a controlled run's time
-            goes](adaptive.md#where-a-controlled-runs-time-goes), "What goes wrong at loose
+            goes](performance.md#where-a-controlled-runs-time-goes), "What goes wrong at loose
             tolerances").
         predictive: bound the factor by Gustafsson's predictive controller (above); default
             True. False (with ``failfactor=factormin``) gives diffrax's controller. Static.
