@@ -1,46 +1,32 @@
 """Adaptive steps (issue 22, item 9): galerkin_jax's PIDController and TimeTransform against
 diffrax Dopri8 + PID and Tsit5 + PID, and against uniform steps over long runs.
 
-    python benchmarks/bench_adaptive.py [--quick] [--only a b c d] [--orbits 1000] [--e 0.9]
+    python -m benchmarks adaptive [--quick] [--only a b c] [--orbits 1000] [--e 0.9]
 
-Four parts, in one process, BLAS pinned to one thread:
-  a  Kepler e = 0.9 and e = 0.99, 10 orbits from apocentre: work-precision (run time and steps
-     against the final error, max-norm against the exact orbit), cG(k)+Gauss k with a
-     PIDController (k = 4, 6, 8; rtol = atol = tol, one run per decade), cG(6)+Gauss 7 with it
-     (one quadrature point more: the energy error of a step O(h^(2k + 3)), not O(h^(2k + 1)),
-     so a smaller phase error at the same steps; docs/adaptive.md), cG(6)+Gauss 6 with the
-     TimeTransform (h in tau swept), diffrax Dopri8 and Tsit5 with PID (rtol = atol = tol, one
-     run per decade from 1e-6 to 1e-15);
-     at each target final error the cost of each solver interpolated on its log-log curve, and
-     the ratio ours / best peer;
-  b  the Pythagorean three-body problem (masses 3, 4, 5 at rest, G = 1), t in [0, 5], with its
-     close encounters (steps from 1e-5 to 0.3): the same comparison against a reference
-     (cG(8)+Gauss 8 with the TimeTransform at a small step, checked against SciPy DOP853 and
-     against a change of 1e-14 in q0; no target below its resolution);
-  c  Kepler e = 0.9 (``--e 0.99``) over ``--orbits`` orbits (default 1000; 100 with --quick), cG(4)+Gauss 4
+Three parts, in one process:
+  a  Kepler e = 0.9 and e = 0.99, 10 orbits from apocentre: work-precision (run time, steps and
+     field evaluations against the final error, max-norm against the exact orbit) of cG(k)+Gauss
+     k with a PIDController (k = 4, 6, 8; one run per decade of rtol = atol), cG(6)+Gauss 7 with
+     it (one quadrature point more, docs/adaptive.md), cG(6)+Gauss 6 with the TimeTransform (h in
+     tau swept), diffrax Dopri8 and Tsit5 with PID (1e-6 .. 1e-15); at each target final error the
+     cost of each solver interpolated on its log-log curve, and the ratio ours / best peer;
+  b  the Pythagorean three-body problem (masses 3, 4, 5 at rest, G = 1), t in [0, 5]: the same
+     against a reference (cG(8)+Gauss 8 with the TimeTransform at a small step, checked against
+     SciPy DOP853 and against a change of 1e-14 in q0; no target below its resolution);
+  c  Kepler e = 0.9 (``--e 0.99``) over ``--orbits`` orbits (1000; 100 with --quick), cG(4)+Gauss 4
      with the TimeTransform (its default s, and Kepler's own s = (r / r0)^(3/2)), the
-     PIDController and uniform steps (fixed steps, every state saved): the maximum energy error
-     over the nodes against run time, the first quarter's against the last quarter's, and the
-     uniform cost at the TimeTransform's energy error;
-  d  the share of the controller's estimate (``embedded_error``) in a step: the PID run again
-     with four more estimates per attempt (the same steps; the extra time over four is one
-     estimate's cost in the loop), and the estimate alone over the run's elements (in a
-     ``lax.scan``, and vmapped), each against the PID run's time per attempt.
-Compile time (ahead of time) is reported apart from the run time (best of several calls).
-Writes results/adaptive.json and results/adaptive_work_precision.png, adaptive_energy.png
-(``--quick`` and ``--only`` add a suffix unless ``--name`` is given).
+     PIDController and uniform steps: the maximum energy error over the nodes against run time,
+     the first quarter's against the last quarter's, the uniform cost at the TimeTransform's error.
+Compile time (ahead of time) apart from run time (best of several calls). Writes
+results/adaptive.json, adaptive_work_precision.png and adaptive_energy.png (``--quick`` and
+``--only`` add a suffix unless ``--name`` is given).
 """
 
-import os
+import argparse
+import time
+import warnings
 
-for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
-    os.environ[_var] = "1"  # a threaded LAPACK (the LU of cG(8)'s 32 unknowns) stalls on a busy machine
-
-import argparse  # noqa: E402
-import pathlib  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-import warnings  # noqa: E402
+from _common import RESULTS, best_time, compiled, energy_quarters, figure, write  # first: one BLAS thread, float64
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -48,15 +34,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.integrate  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-
 import _peers as peers  # noqa: E402
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, best_time, compiled, element_polynomials, energy_quarters, figure, write  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
-from galerkin_jax import _adaptive as adaptive  # noqa: E402
-from galerkin_jax._controllers import embedded_error  # noqa: E402
 
 warnings.filterwarnings("ignore", message="At least one element of `rtol` is too small")
 
@@ -156,16 +136,16 @@ def ours(method, kind):
 
 
 def peer(solver):
-    counted = peers.diffrax_pid_counted(solver, max_steps=MAX_STEPS)
+    """diffrax ``solver`` with a PID controller (rtol = atol = the knob, the first step diffrax's)."""
 
     def make(H):
-        run = counted(H)
-
-        def adapted(q0, p0, T, tol):
-            z1, status, accepted, rejected = run(jnp.concatenate([q0, p0]), T, tol)
+        def run(q0, p0, T, tol):
+            controller = diffrax.PIDController(rtol=tol, atol=tol)
+            z1, status, accepted, rejected = peers.diffrax_solve(H, T, jnp.concatenate([q0, p0]), solver, None,
+                                                                 controller, MAX_STEPS)
             return z1, status, accepted, rejected, jnp.zeros((), jnp.int32)
 
-        return adapted
+        return run
 
     return make
 
@@ -280,28 +260,18 @@ def ratios(records, problems):
 def plot_work_precision(records, problems, path):
     """Run time (top) and gradient evaluations (bottom, free of the machine's load) against the
     final error, one column per problem."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, len(problems), figsize=(5.5 * len(problems), 8), squeeze=False)
-    for column, label in enumerate(problems):
-        for row, (key, unit) in enumerate((("run_s", "run time [s]"), ("evaluations", "gradient evaluations"))):
-            ax = axes[row, column]
-            for name in sorted({r["solver"] for r in records}):
-                pts = [r for r in records if r["problem"] == label and r["solver"] == name and "error" in r]
-                style = "--" if name in PEERS else "-"
-                ax.loglog([p["error"] for p in pts], [p[key] for p in pts], style, marker="o", ms=3, label=name)
-            ax.set_title(label)
-            ax.set_xlabel("final error (max-norm)")
-            ax.set_ylabel(unit)
-            ax.invert_xaxis()
-            ax.grid(True, which="both", alpha=0.3)
-    axes[0, 0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    with figure(path, ncols=len(problems), nrows=2, size=(5.5, 4), dpi=90) as axes:
+        for column, label in enumerate(problems):
+            for row, (key, unit) in enumerate((("run_s", "run time [s]"), ("evaluations", "gradient evaluations"))):
+                ax = axes[row, column]
+                for name in sorted({r["solver"] for r in records}):
+                    pts = [r for r in records if r["problem"] == label and r["solver"] == name and "error" in r]
+                    ax.loglog([p["error"] for p in pts], [p[key] for p in pts], "--" if name in PEERS else "-",
+                              marker="o", ms=3, label=name)
+                ax.set(title=label, xlabel="final error (max-norm)", ylabel=unit)
+                ax.invert_xaxis()
+                ax.grid(True, which="both", alpha=0.3)
+        axes[0, 0].legend(fontsize=7)
 
 
 # ---------------------------------------------------------------- (c) long runs
@@ -435,98 +405,19 @@ def plot_energy(curves, path, e):
         ax.legend(fontsize=7, ncol=2)
 
 
-# ---------------------------------------------------------------- (d) the estimate's share
-
-
-def estimate_share(label, prob, k, tol):
-    """Time per attempt of a PID run against the embedded estimate of its elements alone."""
-    method = gauss(k)
-    H, q0, p0, T = prob["H"], prob["q0"], prob["p0"], prob["T"]
-    max_steps = 20_000
-
-    def pid(q0, p0):
-        return gj.integrate(H, q0, p0, method=method, h=1e-3 * T, t1=T, controller=gj.PIDController(tol, tol),
-                            max_steps=max_steps, dense=True)
-
-    compile_pid, call_pid = compiled(pid, q0, p0)
-    sol = call_pid(q0, p0)
-    assert int(sol.status) == 0
-    steps, rejected = int(sol.stats["num_accepted_steps"]), int(sol.stats["num_rejected_steps"])
-    run_pid = best_time(call_pid, q0, p0, repeat=5)
-    t, z = (np.asarray(x) for x in (sol.dense.t, sol.dense.z))
-    h = jnp.asarray(np.diff(t[: steps + 1]))
-    zs = jnp.asarray(z[:steps])
-    Ws = element_polynomials(method, H, zs, h)
-    d = q0.shape[0]
-
-    def one(z, W, h):
-        return embedded_error(H, z[:d], z[d:], W, h)
-
-    def scanned(zs, Ws, h):
-        return jax.lax.scan(lambda c, x: (jnp.maximum(c, jnp.max(jnp.abs(one(*x)))), None),
-                            jnp.zeros((), zs.dtype), (zs, Ws, h))[0]
-
-    _, call_scan = compiled(scanned, zs, Ws, h)
-    est_scan = best_time(call_scan, zs, Ws, h, repeat=5)
-    vmapped = lambda zs, Ws, h: jnp.max(jnp.abs(jax.vmap(one)(zs, Ws, h)))
-    _, call_vmap = compiled(vmapped, zs, Ws, h)
-    est_vmap = best_time(call_vmap, zs, Ws, h, repeat=5)
-    # in the loop: the same run with `extra` more estimates per attempt (same steps, decisions unchanged)
-    extra = 4
-    original = adaptive.embedded_error
-
-    def padded(H, q0, p0, W, h):
-        e = original(H, q0, p0, W, h)
-        more = sum(jnp.sum(original(H, q0, p0, W, h * (1 + i * jnp.finfo(h.dtype).eps))) for i in range(1, extra + 1))
-        return e + jnp.where(jnp.abs(more) > 1e300, 1.0, 0.0)  # depends on the extra estimates, changes nothing
-
-    H_padded = lambda q, p: H(q, p)  # a new function: no cached trace of the unpatched loop
-    adaptive.embedded_error = padded
-    try:
-        plain = lambda H: lambda q0, p0: gj.integrate(H, q0, p0, method=method, h=1e-3 * T, t1=T,
-                                                      controller=gj.PIDController(tol, tol), max_steps=max_steps,
-                                                      error_estimate=False).stats["num_accepted_steps"]
-        compile_padded, call_padded = compiled(plain(H_padded), q0, p0)
-    finally:
-        adaptive.embedded_error = original
-    _, call_plain = compiled(plain(H), q0, p0)
-    assert int(call_padded(q0, p0)) == int(call_plain(q0, p0)) == steps
-    run_plain, run_padded = np.inf, np.inf
-    for _ in range(4):  # interleaved: the machine's load changes between them
-        run_plain = min(run_plain, best_time(call_plain, q0, p0, repeat=5, min_s=0.3))
-        run_padded = min(run_padded, best_time(call_padded, q0, p0, repeat=5, min_s=0.3))
-    attempts = steps + rejected
-    per_attempt = run_plain / attempts
-    rec = dict(
-        problem=label, method=f"cG({k})+Gauss {k}", tol=tol, steps=steps, rejected=rejected,
-        newton_pid=int(sol.stats["num_newton_iterations"]),
-        compile_pid_s=compile_pid, compile_padded_s=compile_padded, run_pid_dense_s=run_pid, run_pid_s=run_plain,
-        run_padded_s=run_padded, extra_estimates=extra, pid_us_per_attempt=1e6 * per_attempt,
-        share_in_loop=(run_padded - run_plain) / extra / run_plain,
-        estimate_scan_us=1e6 * est_scan / steps, estimate_vmap_us=1e6 * est_vmap / steps,
-        share_scan=est_scan / steps / per_attempt, share_vmap=est_vmap / steps / per_attempt,
-        estimate_matches_run=bool(np.isclose(float(call_scan(zs, Ws, h)), float(sol.error_estimate), rtol=1e-6)),
-    )
-    print(f"  {label} {rec['method']}: {attempts} attempts, PID {rec['pid_us_per_attempt']:.1f} us/attempt; "
-          f"estimate alone {rec['estimate_scan_us']:.2f} us (scan), {rec['estimate_vmap_us']:.2f} us (vmap); "
-          f"share: in the loop {100 * rec['share_in_loop']:.1f} %, alone {100 * rec['share_scan']:.1f} % / "
-          f"{100 * rec['share_vmap']:.1f} %", flush=True)
-    return rec
-
-
 # ---------------------------------------------------------------- main
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="thinner sweeps, 100 orbits in part c (a smoke pass)")
-    parser.add_argument("--only", nargs="+", choices=("a", "b", "c", "d"), default=("a", "b", "c", "d"))
+    parser.add_argument("--only", nargs="+", choices=("a", "b", "c"), default=("a", "b", "c"))
     parser.add_argument("--orbits", type=int, default=None, help="orbits of part c (default 1000, --quick 100)")
     parser.add_argument("--e", type=float, default=0.9, choices=sorted(LONG_KNOBS),
                         help="eccentricity of part c (default 0.9)")
     parser.add_argument("--name", default=None)
     opts = parser.parse_args()
-    suffix = ("_quick" if opts.quick else "") + ("" if len(opts.only) == 4 else "_" + "".join(opts.only))
+    suffix = ("_quick" if opts.quick else "") + ("" if len(opts.only) == 3 else "_" + "".join(opts.only))
     name = opts.name or "adaptive" + suffix
     results, start = dict(parts=list(opts.only)), time.perf_counter()
     problems = {}
@@ -547,14 +438,6 @@ def main():
         print(f"c: Kepler e = {opts.e}, {orbits} orbits", flush=True)
         results["long"], curves = long_runs(orbits, opts.quick, opts.e)
         plot_energy(curves, RESULTS / f"{name}_energy.png", opts.e)
-    if "d" in opts.only:
-        print("d: the estimate's share of a step", flush=True)
-        results["estimate_share"] = [
-            estimate_share("Kepler e=0.9", kepler_problem(0.9), 6, 1e-8),
-            estimate_share("Kepler e=0.9", kepler_problem(0.9), 8, 1e-8),
-            estimate_share("Pythagorean 3-body", dict(H=three_body, q0=jnp.asarray([1.0, 3.0, -2.0, -1.0, 1.0, -1.0]),
-                                                      p0=jnp.zeros(6), T=5.0), 6, 1e-8),
-        ]
     results["total_s"] = time.perf_counter() - start
     write(name, results)
 

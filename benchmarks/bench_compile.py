@@ -1,6 +1,6 @@
 """Time to the first answer: where a run's first call goes, beside diffrax's equivalent.
 
-    python benchmarks/bench_compile.py [--only kepler fput cli] [--name compile]
+    python -m benchmarks compile [--only kepler fput cli tour] [--kinds KIND ...] [--name compile]
 
 For every public entry point and run kind, on Kepler (d = 2, cG(6) + Gauss 6, one orbit) and on
 the beta-FPUT chain (N = 64, cG(4) + Gauss 4), the first call of a fresh function in one
@@ -27,15 +27,14 @@ import sys
 import tempfile
 import time
 
-import jax
-import jax.numpy as jnp
-import numpy as np
+from _common import write  # first: one BLAS thread, float64
 
-import galerkin_jax as gj
-from galerkin_jax import scenes
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(__file__))
-from _common import write  # noqa: E402
+import galerkin_jax as gj  # noqa: E402
+from galerkin_jax import scenes  # noqa: E402
 
 _EVENTS = {"compile": "/jax/core/compile/backend_compile_duration"}
 _durations = []
@@ -237,7 +236,6 @@ def main():
     parser.add_argument("--kinds", nargs="*", help="run kinds to measure (default: all), e.g. 'integrate PID'")
     parser.add_argument("--name", default="compile")
     options = parser.parse_args()
-    jax.config.update("jax_enable_x64", True)
     results = {}
     if "kepler" in options.only:
         results["kepler"] = problem_part("kepler", kepler(), options.kinds)

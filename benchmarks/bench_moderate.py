@@ -1,7 +1,7 @@
 """Untuned moderate systems (issue 37, item 1): galerkin_jax against diffrax and the integrators
 a user of each field would write, at a largest relative energy error of 1e-6, 1e-8 and 1e-10.
 
-    python benchmarks/bench_moderate.py [--quick] [--only LJ13 LJ55 Morse13 Morse55 Plummer32 Chain10]
+    python -m benchmarks moderate [--quick] [--only LJ13 LJ55 Morse13 Morse55 Plummer32 Chain10]
 
 The systems (``_moderate.py``, where each is described with its start and seed): Lennard-Jones
 and Morse (rho = 6) clusters of 13 and 55 atoms from their relaxed Mackay icosahedra with
@@ -37,39 +37,26 @@ fixed steps: ``integrate(n_steps=n)``, its own compilation, for the k within 1.5
 in the search) and timed as the best of several calls, twice, minutes apart; compile time apart.
 
 Writes results/moderate.json (every run) and results/moderate.md (the tables, also printed);
-``--quick`` (short spans, small systems, a few solvers; it also counts the calls of H per
-residual by a callback, ``count_calls``) and ``--only`` add a suffix to these names unless
-``--name`` is given. ``--gradients`` only measures one gradient of each system's H, alone and
-vmapped over k states (``gradient_costs``, results/moderate_gradients.json); ``--split`` where an
-element's time goes, fields, the residual's algebra, the solver's own work (``element_split``,
-results/moderate_split.json).
+``--quick`` (short spans, small systems, a few solvers) and ``--only`` add a suffix to these
+names unless ``--name`` is given.
 """
 
-import os
+import argparse
+import dataclasses
+import math
+import time
+from typing import Callable
 
-for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
-    os.environ[_var] = "1"  # as bench_peers: one BLAS thread for everyone
-
-import argparse  # noqa: E402
-import dataclasses  # noqa: E402
-import math  # noqa: E402
-import pathlib  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from typing import Callable  # noqa: E402
+from _common import best_time, compiled, machine, write  # first: one BLAS thread, float64
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-
 import _moderate as systems  # noqa: E402
 import _peers as peers  # noqa: E402
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, best_time, chained_us, compiled, machine, write  # noqa: E402
 
 SAVES = 10  # the energy is measured at t = j T / SAVES, j = 0..SAVES
 LEVELS = (1e-6, 1e-8, 1e-10)
@@ -168,7 +155,7 @@ def evaluations(system, k, iterations, attempts):
     """galerkin_jax's field evaluations, counted from its iterations: k (one per Gauss point) per
     residual, one residual per iteration and one per attempt (the start's). On states of more
     than 8 degrees of freedom a residual is the Gauss-Seidel sweep's two halves, dH/dq and
-    dH/dp, two calls of H (``count_calls`` checks it): for a separable H the dH/dp half needs no
+    dH/dp, two calls of H (counted by a callback at 8777906): for a separable H the dH/dp half needs no
     gradient of V, so it counts once; for the chain each half is a gradient of H, so twice."""
     halves = 2 if system.V is None and system.q0.size > 8 else 1
     return k * halves * (iterations + attempts)
@@ -283,118 +270,65 @@ DIFFRAX_STAGES = {"Tsit5": 6, "Dopri8": 12}  # new field evaluations per attempt
 
 
 def diffrax_run(name, controlled):
-    """diffrax ``name`` (Tsit5 or Dopri8) on z = (q, p) with the field J DH (``_peers``): knob m
-    steps of T / (SAVES m) per segment (ConstantStepSize) or rtol = atol (PIDController)."""
+    """diffrax ``name`` (Tsit5 or Dopri8) on z = (q, p) (``_peers.diffrax_solve``): knob m steps
+    of T / (SAVES m) per segment (ConstantStepSize) or rtol = atol (PIDController)."""
     solver = getattr(diffrax, name)()
 
     def make(system):
         span, d = system.T / SAVES, system.q0.size
-        term = diffrax.ODETerm(lambda t, z, args: peers.hamiltonian_field(system.H)(z))
 
         def run(q0, p0, knob):
             controller = diffrax.PIDController(rtol=knob, atol=knob) if controlled else diffrax.ConstantStepSize()
-            first = 1e-3 * span if controlled else span / knob
 
             def step_segment(q, p, dt0):
-                sol = diffrax.diffeqsolve(term, solver, 0.0, span, dt0, jnp.concatenate([q, p]),
-                                          saveat=diffrax.SaveAt(t1=True), stepsize_controller=controller,
-                                          max_steps=MAX_STEPS, throw=False)
-                accepted, rejected = sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"]
-                status = jnp.where(sol.result == diffrax.RESULTS.successful, 0, 1)
-                evaluations = DIFFRAX_STAGES[name] * (accepted + rejected) + 1
+                z, status, accepted, rejected = peers.diffrax_solve(system.H, span, jnp.concatenate([q, p]), solver,
+                                                                    dt0, controller, MAX_STEPS)
                 dt = span / jnp.maximum(accepted, 1) if controlled else dt0
-                z = sol.ys[-1]
-                return z[:d], z[d:], dt, counts(status, accepted, rejected, evaluations)
+                return z[:d], z[d:], dt, counts(status, accepted, rejected, DIFFRAX_STAGES[name] * (accepted + rejected) + 1)
 
-            return segments(step_segment, q0, p0, jnp.asarray(first, q0.dtype))
+            return segments(step_segment, q0, p0, jnp.asarray(1e-3 * span if controlled else span / knob, q0.dtype))
 
         return run
 
     return make
-
-
-# explicit splitting (separable H = p^2 / 2m + V)
-
-TRIPLE_JUMP = (1 / (2 - 2 ** (1 / 3)), -(2 ** (1 / 3)) / (2 - 2 ** (1 / 3)), 1 / (2 - 2 ** (1 / 3)))
 
 
 def verlet(weights=(1.0,)):
-    """Velocity Verlet (kick-drift-kick, the force reused from the step before: one gradient of V
-    per substep), composed with ``weights`` (Yoshida's triple jump: fourth order, three
-    gradients per step [Yoshida 1990]); knob m steps of T / (SAVES m) per segment."""
+    """Velocity Verlet (``_peers.verlet_step``: one gradient of V per substep), composed with
+    ``weights`` (Yoshida's triple jump: order 4); knob m steps of T / (SAVES m) per segment."""
 
     def make(system):
-        span, force = system.T / SAVES, jax.grad(system.V)
-        inverse_mass = jnp.asarray(1.0 / system.masses)
-
         def run(q0, p0, m):
-            h = span / m
-
-            def substep(c, w):
-                q, p, f = c
-                p = p - 0.5 * w * h * f
-                q = q + w * h * inverse_mass * p
-                f = force(q)
-                return q, p - 0.5 * w * h * f, f
-
-            def one(_, c):
-                for w in weights:
-                    c = substep(c, w)
-                return c
+            step = peers.verlet_step(system.H, system.T / SAVES / m, weights)
 
             def step_segment(q, p, f):
-                q, p, f = jax.lax.fori_loop(0, m, one, (q, p, f))
+                q, p, f = jax.lax.fori_loop(0, m, lambda _, c: step(c), (q, p, f))
                 return q, p, f, counts(0, m, 0, len(weights) * m)
 
-            return segments(step_segment, q0, p0, force(q0))
+            return segments(step_segment, q0, p0, jax.grad(system.H)(q0, p0))
 
         return run
 
     return make
 
 
-# implicit midpoint (any H)
-
-
-def midpoint(weights=(1.0,), max_iterations=50):
-    """The implicit midpoint rule z1 = z0 + h f((z0 + z1) / 2), f = J DH, solved by fixed-point
-    iteration on Z = z1 - z0 from the last step's Z to round-off (|dZ| <= 10 eps (1 + |z0|)),
-    the usual choice for non-stiff problems [Hairer, Lubich, Wanner, Sect. VIII.6]; composed
-    with ``weights`` (the triple jump: order 4). Symplectic and symmetric. Status 1 if a step
-    took ``max_iterations``; knob m steps of T / (SAVES m) per segment."""
+def midpoint(weights=(1.0,)):
+    """The implicit midpoint rule (``_peers.gauss_step`` of one stage: fixed-point iteration to
+    round-off, each update one field evaluation; status 1 if a step took its cap), composed with
+    ``weights`` (the triple jump: order 4); knob m steps of T / (SAVES m) per segment."""
 
     def make(system):
-        span, field, d = system.T / SAVES, peers.hamiltonian_field(system.H), system.q0.size
+        d = system.q0.size
 
         def run(q0, p0, m):
-            h = span / m
-
-            def substep(c, w):
-                z, Z, status, it = c
-                tol = 10 * jnp.finfo(z.dtype).eps * (1 + jnp.max(jnp.abs(z)))
-
-                def iterate(s):
-                    Z, _, i = s
-                    Z1 = w * h * field(z + 0.5 * Z)
-                    return Z1, jnp.max(jnp.abs(Z1 - Z)), i + 1
-
-                Z, _, i = jax.lax.while_loop(lambda s: (s[1] > tol) & (s[2] < max_iterations), iterate,
-                                             (Z, jnp.inf, 0))
-                return z + Z, Z, jnp.where(i >= max_iterations, 1, status), it + i
-
-            def one(_, c):
-                z, Zs, status, it = c
-                Zs_new = []
-                for j, w in enumerate(weights):  # each substep predicted by its own from the last step
-                    z, Z, status, it = substep((z, Zs[j], status, it), w)
-                    Zs_new.append(Z)
-                return z, jnp.stack(Zs_new), status, it
+            step = peers.gauss_step(system.H, system.T / SAVES / m, 1, weights)
 
             def step_segment(q, p, Zs):
-                z, Zs, status, it = jax.lax.fori_loop(0, m, one, (jnp.concatenate([q, p]), Zs, 0, 0))
+                zero = jnp.zeros((), jnp.int32)
+                z, Zs, status, it = jax.lax.fori_loop(0, m, lambda _, c: step(c), (jnp.concatenate([q, p]), Zs, zero, zero))
                 return z[:d], z[d:], Zs, counts(status, m, 0, it, it)
 
-            return segments(step_segment, q0, p0, jnp.zeros((len(weights), 2 * d), q0.dtype))
+            return segments(step_segment, q0, p0, jnp.zeros((len(weights), 1, 2 * d), q0.dtype))
 
         return run
 
@@ -457,9 +391,9 @@ def solver_list(quick):
         Solver("diffrax Tsit5 PID", False, "tol", 1.0, diffrax_run("Tsit5", True), 1e-6),
         Solver("diffrax Dopri8 PID", False, "tol", 1.0, diffrax_run("Dopri8", True), 1e-6),
         Solver("velocity Verlet", False, "steps", 2, verlet(), 0.125, applies=separable),
-        Solver("Verlet triple jump (order 4)", False, "steps", 4, verlet(TRIPLE_JUMP), 0.5, applies=separable),
+        Solver("Verlet triple jump (order 4)", False, "steps", 4, verlet(peers.TRIPLE_JUMP), 0.5, applies=separable),
         Solver("implicit midpoint", False, "steps", 2, midpoint(), 0.125, applies=non_separable),
-        Solver("midpoint triple jump (order 4)", False, "steps", 4, midpoint(TRIPLE_JUMP), 0.5,
+        Solver("midpoint triple jump (order 4)", False, "steps", 4, midpoint(peers.TRIPLE_JUMP), 0.5,
                applies=non_separable),
     ]
     explicit = [Solver(label, True, "steps", order, explicit_search(method, forces), start, applies=separable,
@@ -619,9 +553,9 @@ def cheapest(probe, target, start, max_runs=12, max_jump=8):
 # ---------------------------------------------------------------- one system
 
 
-def run_system(system, solvers, cap_s, quick):
+def run_system(system, solvers, cap_s):
     """Every solver at every level on ``system``: the cheapest run per level (found, not yet
-    timed; ``time_cheapest`` times them), and, with ``quick``, the calls of H checked."""
+    timed; ``time_cheapest`` times them)."""
     print(f"{system.name}: {system.description}", flush=True)
     result = dict(description=system.description, facts=system.facts, T=system.T, d=int(system.q0.size),
                   H0=float(system.H(jnp.asarray(system.q0), jnp.asarray(system.p0))), solvers={})
@@ -638,10 +572,6 @@ def run_system(system, solvers, cap_s, quick):
                 start = index
         result["solvers"][solver.name] = dict(ours=solver.ours, kind=solver.kind, levels=entry)
     choose_finals(result, probes)
-    cg4 = result["solvers"].get("cG(4)+Gauss 4", {}).get("levels", {}).get("1e-08", {}).get("index")
-    if quick and cg4 is not None:
-        result["calls_of_H"] = count_calls(system, 4, knob_value(probes["cG(4)+Gauss 4"].solver, cg4))
-        print(f"  calls of H: {result['calls_of_H']}", flush=True)
     return result, probes
 
 
@@ -666,25 +596,6 @@ def choose_finals(result, probes):
         for name, entry in entries.items():
             if first[name] > FINAL_MARGIN * fastest:
                 entry.update(probes[name](entry["index"]), search_only=True)
-
-
-def count_calls(system, k, m):
-    """Calls of H in cG(k)'s first segment at m elements per segment, counted by a callback inside
-    H, per residual (iterations + elements): what ``evaluations`` assumes, checked (2 on states
-    of more than 8 degrees of freedom, the sweep's halves; 1 below)."""
-    calls = []
-
-    def counted(q, p):
-        jax.debug.callback(lambda: calls.append(1))
-        return system.H(q, p)
-
-    method = gj.CG(k, gj.gauss_legendre(k))
-    run = jax.jit(lambda q, p: gj.integrate(counted, q, p, method=method, h=system.T / (SAVES * m), n_steps=m,
-                                            save_every=m, error_estimate=False))
-    sol = jax.block_until_ready(run(jnp.asarray(system.q0), jnp.asarray(system.p0)))
-    iterations = int(sol.stats["num_newton_iterations"])
-    return dict(method=f"cG({k})+Gauss {k}", elements=m, calls=len(calls), iterations=iterations,
-                calls_per_residual=len(calls) / (iterations + m))
 
 
 def time_cheapest(result, probes, repeat, budget_s):
@@ -786,85 +697,6 @@ def cell(kind, e):
             f"({knob_text(kind, e)}{its}, {1e6 * e['run_s'] / e['evaluations']:.2f} us/eval)")
 
 
-# ---------------------------------------------------------------- the price of one gradient
-
-
-def gradient_costs(system, points=(3, 4, 6), calls=200):
-    """Microseconds per gradient at one state: of H (both halves, the diffrax field's cost) and
-    of dH/dq alone (a splitting's force, the sweep's q half), and dH/dq vmapped over k states
-    (a cG(k) residual's q half), per state. Each is ``calls`` chained calls in one compiled
-    loop, best of 5."""
-    q0, p0 = jnp.asarray(system.q0), jnp.asarray(system.p0)
-    grad_both, grad_q = jax.grad(system.H, argnums=(0, 1)), jax.grad(system.H, argnums=0)
-
-    def cost(step, q, p, states=1):
-        return chained_us(lambda c: step(*c), (q, p), calls) / states
-
-    def both(q, p):
-        dq, dp = grad_both(q, p)
-        return q + 1e-16 * dq, p + 1e-16 * dp
-
-    row = {"dH": cost(both, q0, p0), "dH/dq": cost(lambda q, p: (q + 1e-16 * grad_q(q, p), p), q0, p0)}
-    for k in points:
-        Q, P = jnp.stack([q0] * k), jnp.stack([p0] * k)
-        row[f"dH/dq at {k} states, per state"] = cost(lambda q, p: (q + 1e-16 * jax.vmap(grad_q)(q, p), p), Q, P, k)
-    print(f"  {system.name}: " + ", ".join(f"{key} {value:.2f} us" for key, value in row.items()), flush=True)
-    return row
-
-
-# steps of cG(3) over the span (each system's count at 1e-6, ``results/moderate.md``) for the split
-SPLIT_STEPS = {"LJ13": 1520, "LJ55": 270, "Morse13": 1810, "Morse55": 270, "Plummer32": 270, "Chain10": 320}
-
-
-def element_split(system, k=3, calls=200):
-    """Where an element's time goes (issue 37, item 2): cG(k) at n and 4 n fixed steps (n from
-    ``SPLIT_STEPS``) gives two (updates per element, µs per element) points, whose line is
-    ``fixed + updates x per_update``; one residual of the element equations (the sweep's, as the
-    solver iterates it) and its field evaluations alone (dH at k states, both halves on the
-    chain, dH/dq on the separable systems) are timed in ``calls`` chained calls in one program.
-    per_update - residual is the solver's own work per update (its checks and their kernel
-    launches), residual - field the polynomial algebra around the field."""
-    from galerkin_jax import _march
-
-    method = gj.CG(k, gj.gauss_legendre(k))
-    q0, p0 = jnp.asarray(system.q0), jnp.asarray(system.p0)
-    points = []
-    for n in (SPLIT_STEPS[system.name], 4 * SPLIT_STEPS[system.name]):
-        run = lambda q0, p0: gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=n,
-                                          error_estimate=False)
-        _, call = compiled(run, q0, p0)
-        sol = call(q0, p0)
-        points.append((float(sol.stats["num_newton_iterations"]) / n, 1e6 * best_time(call, q0, p0, repeat=5) / n))
-    (u1, t1), (u2, t2) = points
-    per_update = (t1 - t2) / (u1 - u2)
-    fixed = t1 - u1 * per_update
-    options = _march.solver_options(method)
-    h = jnp.asarray(system.T / SPLIT_STEPS[system.name])
-    Z = _march.solve_element(method, system.H, q0, p0, h, None, options)[2]
-    fn = _march.element_residual(system.H, options.solver.sweep_dimension)
-    separable_field = system.V is not None
-
-    def field(Z):
-        X = q0 + jnp.linspace(0.0, 1.0, k)[:, None] * Z[0, : q0.size]  # k states near the element's
-        if separable_field:
-            return jax.vmap(jax.grad(system.H, argnums=0), in_axes=(0, None))(X, p0)
-        return jnp.concatenate(jax.vmap(jax.grad(system.H, argnums=(0, 1)), in_axes=(0, None))(X, p0), axis=1)
-
-    cost = lambda f, x: chained_us(lambda x: x + 1e-30 * jnp.mean(f(x)), x, calls)
-    residual_us = cost(lambda Z: fn(Z, (method, q0, p0, h, None)), Z)
-    field_us = cost(field, Z)
-    row = dict(k=k, steps=[SPLIT_STEPS[system.name], 4 * SPLIT_STEPS[system.name]],
-               updates_per_element=[u1, u2], us_per_element=[t1, t2], us_per_update=per_update,
-               us_fixed_per_element=fixed, us_residual=residual_us, us_field=field_us,
-               us_solver_per_update=per_update - residual_us, us_algebra_per_residual=residual_us - field_us)
-    share = lambda x: 100 * x / t1
-    print(f"  {system.name}: {t1:.1f} us an element at n = {points and SPLIT_STEPS[system.name]} ({u1:.1f} updates): "
-          f"fields {share(u1 * field_us):.0f} %, the residual's algebra {share(u1 * (residual_us - field_us)):.0f} %, "
-          f"the solver's checks {share(u1 * (per_update - residual_us)):.0f} %, per element {share(fixed):.0f} % "
-          f"(per update {per_update:.2f} us: residual {residual_us:.2f}, of it fields {field_us:.2f})", flush=True)
-    return row
-
-
 # ---------------------------------------------------------------- main
 
 
@@ -874,10 +706,6 @@ def main():
     parser.add_argument("--only", nargs="+", metavar="SYSTEM", help="run only these systems (names as in the table)")
     parser.add_argument("--cap", type=float, default=None, help="the longest predicted run that is run (s; "
                         "default 3, --quick 0.5)")
-    parser.add_argument("--gradients", action="store_true", help="only the price of one gradient per system "
-                        "(gradient_costs; writes moderate_gradients.json)")
-    parser.add_argument("--split", action="store_true", help="only where an element's time goes (element_split; "
-                        "writes moderate_split.json)")
     parser.add_argument("--name", help="output name (default moderate, with _quick and the systems run when not all)")
     options = parser.parse_args()
     available = system_list(options.quick)
@@ -887,21 +715,12 @@ def main():
         parser.error(f"unknown systems {unknown}; choose from {list(available)}")
     cap_s = options.cap or (0.5 if options.quick else 3.0)
     suffix = ("_quick" if options.quick else "") + ("" if chosen == list(available) else "_" + "_".join(chosen))
-    name = options.name or "moderate" + ("_gradients" if options.gradients else "_split" if options.split else
-                                         "") + suffix
     before, start = machine(), time.perf_counter()
-    if options.split:
-        write(name, {"machine_before": before, "split": {n: element_split(available[n]()) for n in chosen}})
-        return
-    if options.gradients:
-        write(name, {"machine_before": before, "gradients_us": {n: gradient_costs(available[n]()) for n in chosen}})
-        return
-    solvers = solver_list(options.quick)
     results, all_probes = {}, {}
     repeat, budget_s = (1, 0.5) if options.quick else (3, 3.0)
     for system_name in chosen:
-        system = available[system_name]()
-        results[system_name], all_probes[system_name] = run_system(system, solvers, cap_s, options.quick)
+        results[system_name], all_probes[system_name] = run_system(available[system_name](), solver_list(options.quick),
+                                                                   cap_s)
         time_cheapest(results[system_name], all_probes[system_name], repeat, budget_s)
     # a second timing pass, minutes after the first: this machine's speed drifts
     for system_name in chosen:
@@ -913,14 +732,9 @@ def main():
             entry["final_runs"] = sorted(probe.finals.values(), key=lambda r: r["index"])
     markdown = tables(results)
     total_s = time.perf_counter() - start
-    after = machine()
-    header = (f"`{after['command']}`, {time.strftime('%Y-%m-%d')}, {total_s / 60:.1f} min; {after['processor']}, "
-              f"{os.cpu_count()} cores, JAX {after['jax']}, diffrax {diffrax.__version__}, float64; load average "
-              f"{' '.join(before['load_average'])} before, {' '.join(after['load_average'])} after.\n\n")
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"{name}.md").write_text(header + markdown)
-    write(name, {"machine_before": before, "quick": options.quick, "versions": peers.versions(), "saves": SAVES,
-                 "levels": list(LEVELS), "cap_s": cap_s, "total_s": total_s, "systems": results, "table": markdown})
+    write(options.name or "moderate" + suffix,
+          {"machine_before": before, "quick": options.quick, "versions": before["versions"], "saves": SAVES,
+           "levels": list(LEVELS), "cap_s": cap_s, "total_s": total_s, "systems": results}, markdown)
     print(markdown)
     print(f"total {total_s / 60:.1f} min")
 

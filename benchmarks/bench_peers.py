@@ -1,42 +1,36 @@
 """galerkin_jax against its peers: diffrax, SciPy ``solve_ivp``, and integrators written in JAX.
 
-    python benchmarks/bench_peers.py [--quick] [--only kepler quartic fput batch long]
+    python -m benchmarks peers [--quick] [--only kepler quartic fput batch long explicit]
 
-Five parts, in one process (``_peers.py`` holds the peers):
-  kepler   work-precision, e = 0.6, T = 20, final error against the exact orbit;
-  quartic  work-precision on the quartic central force of [GBS] (c = 1000), T = 1, final error
-           relative to max|z| against SciPy DOP853 at rtol = atol = 1e-14;
-  fput     microseconds per step on the beta-FPUT chain, N = 64 and 512, thermal start, h = 0.05;
-  batch    256 Kepler orbits (e = 0.1 .. 0.7) at once, 1000 steps of h = 0.01;
-  long     Kepler e = 0.6, 1e5 steps of h = 0.01: microseconds per step, energy error.
+Six parts, in one process (``_peers.py`` holds the peers):
+  kepler    work-precision, e = 0.6, T = 20, final error against the exact orbit;
+  quartic   work-precision on the quartic central force of [GBS] (c = 1000), T = 1, final error
+            relative to max|z| against SciPy DOP853 at rtol = atol = 1e-14;
+  fput      microseconds per step on the beta-FPUT chain, N = 64 and 512, thermal start, h = 0.05;
+  batch     256 Kepler orbits (e = 0.1 .. 0.7) at once, 1000 steps of h = 0.01;
+  long      Kepler e = 0.6, 1e5 steps of h = 0.01: microseconds per step, energy error;
+  explicit  Stormer-Verlet through ``gj.integrate`` (``GalerkinVI(1, trapezoid())``, explicit on a
+            separable H) against the hand-written leapfrog, 10^4 steps on LJ13 and FPUT N = 64,
+            the two programs timed alternately (not in the default set: ``--only explicit``).
 A JAX run is compiled ahead of time (compile_s) and timed as the best of several calls
 (run_s); a SciPy run is warmed up once. A run whose status is nonzero is recorded as failed
-and not timed. Writes results/peers.json (every run), results/peers.md (the summary table,
-also printed) and results/peers_work_precision.png; ``--quick`` (a smoke pass, thinner
-sweeps, 1e4 long steps) and ``--only`` add a suffix to these names unless ``--name`` is given.
+and not timed. Writes results/peers.json, results/peers.md (the summary table) and
+results/peers_work_precision.png; ``--quick`` and ``--only`` add a suffix unless ``--name``.
 """
 
-import os
+import argparse
+import warnings
 
-for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
-    os.environ[_var] = "1"  # before NumPy and JAX load a BLAS: SciPy's peers stay on one thread
-
-import argparse  # noqa: E402
-import pathlib  # noqa: E402
-import sys  # noqa: E402
-import warnings  # noqa: E402
+from _common import RESULTS, best_time, compiled, figure, machine, write  # first: one BLAS thread, float64
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-
+import _moderate as systems  # noqa: E402
 import _peers as peers  # noqa: E402
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, best_time, compiled, figure, machine, write  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
 
 # SciPy raises rtol = 1e-14 to 100 eps and says so; the reference asks for it on purpose.
@@ -69,7 +63,7 @@ PEERS = {
     "scipy DOP853": peers.scipy_ivp("DOP853"),
     "scipy Radau": peers.scipy_ivp("Radau"),
     "leapfrog": peers.leapfrog,
-    "Gauss RK s=3": peers.gauss_rk3,
+    "Gauss RK s=3": peers.gauss_rk,
 }
 SOLVERS = LIBRARY | PEERS
 ADAPTIVE = {"diffrax Dopri8+PID", "scipy DOP853", "scipy Radau"}  # their knob is rtol = atol
@@ -286,7 +280,36 @@ def long_part(quick, h=0.01):
     return rows
 
 
-PARTS = {"kepler": kepler_part, "quartic": quartic_part, "fput": fput_part, "batch": batch_part, "long": long_part}
+def explicit_part(quick, n=10_000, rounds=30):
+    """Explicit Stormer-Verlet through ``gj.integrate`` against the hand-written leapfrog (the
+    same steps): the two compiled programs run alternately, ``rounds`` times, the best of each
+    (a loaded machine slows both alike); their largest difference in the end state."""
+    lj, chain = systems.lennard_jones(13), scenes.fput(64)
+    verlet = galerkin(gj.GalerkinVI(1, gj.trapezoid()))
+    n, rounds = (1000, 3) if quick else (n, rounds)
+    rows = {}
+    for label, H, z0, h in (("LJ13", lj.H, np.concatenate([lj.q0, lj.p0]), 0.005),
+                            ("FPUT N = 64", chain.H, state(chain), chain.h)):
+        z0 = jnp.asarray(z0)
+        calls = {name: compiled(make(H, n * h, n), z0) for name, make in (("galerkin_jax", verlet),
+                                                                          ("leapfrog", peers.leapfrog))}
+        ends = {name: np.asarray(call(z0)[0]) for name, (_, call) in calls.items()}
+        best = dict.fromkeys(calls, np.inf)
+        for _ in range(rounds):
+            for name, (_, call) in calls.items():
+                best[name] = min(best[name], best_time(call, z0, repeat=1, min_s=0.0))
+        rows[label] = dict(n_steps=n, h=h, unknowns=int(z0.size) // 2,
+                           **{f"{name}_us_per_step": 1e6 * best[name] / n for name in calls},
+                           **{f"{name}_compile_s": calls[name][0] for name in calls},
+                           ratio=best["galerkin_jax"] / best["leapfrog"],
+                           max_difference=float(np.max(np.abs(ends["galerkin_jax"] - ends["leapfrog"]))))
+        print(f"  {label}: " + ", ".join(f"{k} {v:.3g}" for k, v in rows[label].items()), flush=True)
+    return rows
+
+
+PARTS = {"kepler": kepler_part, "quartic": quartic_part, "fput": fput_part, "batch": batch_part, "long": long_part,
+         "explicit": explicit_part}
+DEFAULT = ("kepler", "quartic", "fput", "batch", "long")
 
 
 def fmt(x, unit=""):
@@ -358,6 +381,10 @@ def table(results):
         rows += batch_row(results["batch"])
     if "long" in results:
         rows += long_row(results["long"])
+    for label, r in results.get("explicit", {}).items():
+        rows.append([f"{label}, {r['n_steps']:,} Stormer-Verlet steps: µs per step",
+                     f"GalerkinVI(1, trapezoid): {fmt(r['galerkin_jax_us_per_step'])}",
+                     f"leapfrog: {fmt(r['leapfrog_us_per_step'])}", fmt(r["ratio"], "x")])
     lines = ["| scene | galerkin_jax | best comparable peer | ratio |", "| --- | --- | --- | --- |"]
     return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows]) + "\n"
 
@@ -384,20 +411,19 @@ def plot(results, path):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="smoke pass: thinner sweeps, one timed call, 1e4 long steps")
-    parser.add_argument("--only", nargs="+", choices=list(PARTS), default=list(PARTS), metavar="SCENE",
+    parser.add_argument("--only", nargs="+", choices=list(PARTS), default=list(DEFAULT), metavar="PART",
                         help=f"run only these parts ({', '.join(PARTS)})")
     parser.add_argument("--name", help="output name (default peers, with _quick and the parts run when not all)")
     options = parser.parse_args()
-    suffix = ("_quick" if options.quick else "") + ("" if options.only == list(PARTS) else "_" + "_".join(options.only))
+    suffix = ("_quick" if options.quick else "") + ("" if options.only == list(DEFAULT) else "_" + "_".join(options.only))
     name = options.name or "peers" + suffix
     before = machine()
     results = {part: PARTS[part](options.quick) for part in options.only}
-    markdown = table(results)
-    RESULTS.mkdir(exist_ok=True)
     if {"kepler", "quartic"} & set(results):
+        RESULTS.mkdir(parents=True, exist_ok=True)
         plot(results, RESULTS / f"{name}_work_precision.png")
-    (RESULTS / f"{name}.md").write_text(markdown)
-    write(name, {"machine_before": before, "quick": options.quick, "versions": peers.versions(), **results, "table": markdown})
+    markdown = table(results)
+    write(name, {"machine_before": before, "quick": options.quick, "versions": before["versions"], **results}, markdown)
     print(markdown)
 
 
