@@ -114,6 +114,11 @@ def write(name, results, markdown=None):
     print(f"wrote {path}")
 
 
+def markdown_table(header, rows):
+    """A markdown table of ``header`` (column names) and ``rows`` (lists of cells)."""
+    return "\n".join("| " + " | ".join(map(str, row)) + " |" for row in [header, ["---"] * len(header), *rows])
+
+
 def energy_quarters(t, dH, T):
     """The largest |dH| over the nodes (times t) of a run to T, in its first and in its last
     quarter, and their ratio (a drift shows as a ratio well above 1)."""

@@ -51,8 +51,6 @@ def gauss(k):
     return gj.CG(k, gj.gauss_legendre(k))
 
 
-# ---------------------------------------------------------------- problems
-
 
 KEPLER_H = scenes.kepler().H  # one function, so that both eccentricities share a compilation
 
@@ -111,8 +109,6 @@ def pythagorean_problem(T=5.0):
     return dict(H=three_body, q0=q0, p0=p0, T=T, z1=ends[1], reference=check, resolution=check["resolution"],
                 tt_h=(0.32, 0.16, 0.08, 0.04, 0.02))
 
-
-# ---------------------------------------------------------------- runs
 
 
 def ours(method, kind):
@@ -274,8 +270,6 @@ def plot_work_precision(records, problems, path):
         axes[0, 0].legend(fontsize=7)
 
 
-# ---------------------------------------------------------------- (c) long runs
-
 
 def kepler_density(q0):
     """Kepler's own step density s = (r / r0)^(3/2), the orbit's dynamical time scale at radius r
@@ -404,8 +398,6 @@ def plot_energy(curves, path, e):
         ax.set_title(f"Kepler e = {e}, cG(4)+Gauss 4")
         ax.legend(fontsize=7, ncol=2)
 
-
-# ---------------------------------------------------------------- main
 
 
 def main():

@@ -1,7 +1,6 @@
 """Gradients through runs whose steps a controller chooses: paid for by the steps taken.
 
     python -m benchmarks gradients [--only max_steps peers long members fixed] [--name gradients]
-    python -m benchmarks gradients --only fixed --baseline REF --name gradients_fixed
 
 max_steps: the beta-FPUT chain of 6 masses, cG(4) + Gauss 4, PIDController(1e-6, 1e-6) to T = 10,
     d/dq0 of |q(T)|^2: forward and gradient time, XLA's temporary buffers of the compiled gradient
@@ -16,8 +15,7 @@ members: a controller's sweep over 8 tolerances (1e-4 .. 1e-11) of Kepler e = 0.
     chain: d/dq0 of the sum of |q(T)|^2 (and a forward-mode product), all members at once and with
     ``batch_size`` 1 and 4, beside the members' gradients alone; compile and run times apart.
 fixed: gradients through fixed steps (Kepler e = 0.5, cG(6), 126 steps; cG(2) + Gauss 3, 2000
-    steps, ``checkpoint=True``; FPUT N = 64, cG(4), 286 steps), each case in a fresh process, for
-    this tree and, with ``--baseline REF``, for the tree at git REF (a temporary worktree).
+    steps, ``checkpoint=True``; FPUT N = 64, cG(4), 286 steps): forward and gradient, compile and run.
 """
 
 import argparse
@@ -192,78 +190,29 @@ def long_part():
     return out
 
 
-_FIXED = textwrap.dedent("""
-    import json, sys, time, timeit
-    sys.path.insert(0, {tree!r})
-    import jax, jax.numpy as jnp, numpy as np
-    jax.config.update("jax_enable_x64", True)
-    import galerkin_jax as gj
-    from galerkin_jax import scenes
-    assert gj.__file__.startswith({tree!r}), gj.__file__
-    case = {case!r}
-    if case.startswith("kepler"):
-        H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
-        q0, p0 = jnp.array([0.5, 0.0]), jnp.array([0.0, 3.0 ** 0.5])
-        k, rule, h, n, extra = ((6, gj.gauss_legendre(6), 2 * np.pi / 126, 126, {{}}) if case == "kepler"
-                                else (2, gj.gauss_legendre(3), 0.01, 2000, dict(checkpoint=True)))
-    else:
-        scene = scenes.fput(64)
-        H, q0, p0 = scene.H, jnp.asarray(scene.q0), jnp.asarray(scene.p0)
-        k, rule, h, n, extra = 4, gj.gauss_legendre(4), 0.035, 286, {{}}
-    method = gj.CG(k, rule)
-    def loss(q0):
-        sol = gj.integrate(H, q0, p0, method=method, h=h, n_steps=n, save_every=n, **extra)
-        return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.p[-1] ** 2)
-    out = {{}}
-    for name, f in (("forward", loss), ("gradient", jax.grad(loss))):
-        t0 = time.perf_counter()
-        call = jax.jit(f).lower(q0).compile()
-        out[name + "_compile_s"] = time.perf_counter() - t0
-        jax.block_until_ready(call(q0))
-        out[name + "_s"] = min(timeit.repeat(lambda: jax.block_until_ready(call(q0)), number=1, repeat=20))
-    out["gradient"] = np.asarray(jax.grad(loss)(q0)).tolist()
-    print(json.dumps(out))
-""")
-
-
-def fixed_part(baseline=None):
-    """Fixed-step gradients of this tree and, with ``baseline``, of the tree at that git ref."""
-    import shutil
-    import tempfile
-
-    here = pathlib.Path(__file__).resolve().parents[1]
-    trees = {"this tree": here}
-    scratch = None
-    if baseline is not None:
-        scratch = pathlib.Path(tempfile.mkdtemp()) / "baseline"
-        subprocess.run(["git", "-C", str(here), "worktree", "add", "--detach", str(scratch), baseline],
-                       check=True, capture_output=True)
-        trees[f"baseline {baseline}"] = scratch
+def fixed_part():
+    """Gradients through fixed steps, d/dq0 of |q_N|^2 + |p_N|^2: compile and run time of the
+    forward run and of the gradient, and the gradient itself (a later tree must keep its digits;
+    two trees compare by their result files, each records its commit)."""
+    kepler_H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
+    q0, p0, chain = jnp.array([0.5, 0.0]), jnp.array([0.0, 3.0**0.5]), scenes.fput(64)
+    cases = {"kepler": (kepler_H, q0, p0, gj.CG(6, gj.gauss_legendre(6)), 2 * np.pi / 126, 126, {}),
+             "kepler_checkpoint": (kepler_H, q0, p0, gj.CG(2, gj.gauss_legendre(3)), 0.01, 2000, dict(checkpoint=True)),
+             "fput64": (chain.H, jnp.asarray(chain.q0), jnp.asarray(chain.p0), gj.CG(4, gj.gauss_legendre(4)), 0.035,
+                        286, {})}
     results = {}
-    try:
-        for case in ("kepler", "kepler_checkpoint", "fput64"):
-            results[case] = {}
-            for label, tree in trees.items():
-                code = _FIXED.format(tree=str(tree), case=case)
-                done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-                results[case][label] = json.loads(done.stdout.strip().splitlines()[-1])
-                row = results[case][label]
-                print(f"{case:18s} {label:18s} forward {1e3 * row['forward_s']:8.3f} ms (compile "
-                      f"{row['forward_compile_s']:5.1f} s), gradient {1e3 * row['gradient_s']:8.3f} ms (compile "
-                      f"{row['gradient_compile_s']:5.1f} s)", flush=True)
-            if baseline is not None:
-                new, old = results[case]["this tree"], results[case][f"baseline {baseline}"]
-                results[case]["gradient_new_over_baseline"] = new["gradient_s"] / old["gradient_s"]
-                results[case]["gradient_compile_new_over_baseline"] = (new["gradient_compile_s"]
-                                                                       / old["gradient_compile_s"])
-                difference = np.max(np.abs(np.subtract(new["gradient"], old["gradient"])))
-                results[case]["gradients_differ_by"] = float(difference / np.max(np.abs(old["gradient"])))
-    finally:
-        if scratch is not None:
-            subprocess.run(["git", "-C", str(here), "worktree", "remove", "--force", str(scratch)], check=False)
-            shutil.rmtree(scratch.parent, ignore_errors=True)
-    return results
+    for case, (H, q0, p0, method, h, n, extra) in cases.items():
+        def loss(q0):
+            sol = gj.integrate(H, q0, p0, method=method, h=h, n_steps=n, save_every=n, **extra)
+            return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.p[-1] ** 2)
 
+        row = results[case] = {}
+        for name, f in (("forward", loss), ("gradient", jax.grad(loss))):
+            row[name + "_compile_s"], row[name + "_s"] = timed(f, q0, repeat=20)
+        row["gradient"] = np.asarray(jax.grad(loss)(q0)).tolist()
+        print(f"{case:18s} forward {1e3 * row['forward_s']:8.3f} ms (compile {row['forward_compile_s']:5.1f} s), "
+              f"gradient {1e3 * row['gradient_s']:8.3f} ms (compile {row['gradient_compile_s']:5.1f} s)", flush=True)
+    return results
 
 
 def members_part(tolerances=tuple(10.0 ** -np.arange(4, 12))):
@@ -308,13 +257,10 @@ PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "m
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--only", nargs="*", default=list(PARTS))
+    parser.add_argument("--only", nargs="+", choices=list(PARTS), default=list(PARTS))
     parser.add_argument("--name", default="gradients")
-    parser.add_argument("--baseline", default=None,
-                        help="a git ref whose fixed-step gradients the 'fixed' part also times")
     options = parser.parse_args()
-    parts = dict(PARTS, fixed=lambda: fixed_part(options.baseline))
-    write(options.name, {part: parts[part]() for part in options.only})
+    write(options.name, {part: PARTS[part]() for part in options.only})
 
 
 if __name__ == "__main__":

@@ -13,18 +13,12 @@ j = 1..10, the same for every solver: every run is cut into ten segments whose e
 land on (fixed steps: a tenth of them each; controlled runs: a run to T / 10 per segment, the
 next one's first step the mean step of the last, the first's 1e-3 T / 10).
 
-The solvers: galerkin_jax cG(k) + Gauss k (k = 3, 4, 6) at fixed steps, cG(4), cG(6) with a
-PIDController (rtol = atol), and cG(3), cG(4) at fixed steps iterating to 1e-10 of the unknowns
-instead of their round-off (``SolverOptions(tolerance=1e-10)``); on the separable systems its
-explicit elements (``EXPLICIT``): Stormer-Verlet (``GalerkinVI(1, trapezoid)``), McLachlan's and
-Kahan and Li's compositions of it and Blanes and Moan's RKN splittings; diffrax Tsit5 and Dopri8,
-fixed steps and PID (rtol = atol); velocity Verlet and Yoshida's fourth-order triple jump of it
-(separable systems), the implicit midpoint rule (fixed-point iteration to round-off) and its
-triple jump (the chain, where no explicit symplectic splitting applies), written here in plain
-JAX (``lax.fori_loop``). No
-TimeTransform: the softened Plummer sphere has no close encounters to follow, and with its
-default s (second derivatives of H in the solve) a first try compiled in 58 s and took 16 s
-for 15 steps at h_tau = 1 (error 5e-2).
+The solvers (``solver_list``): galerkin_jax cG(k) + Gauss k at fixed steps, with a
+PIDController and iterating to 1e-10 instead of round-off; its explicit elements on the
+separable systems (``EXPLICIT``); diffrax Tsit5 and Dopri8, fixed steps and PID; velocity Verlet
+and its triple jump (separable systems), the implicit midpoint rule and its triple jump (the
+chain), in plain JAX (``_peers``). No TimeTransform: the softened Plummer sphere has no close
+encounters to follow (with its default s a first try compiled in 58 s; docs/performance.md).
 
 For each solver and accuracy the cheapest run that meets it: the knob (steps per segment or
 the tolerance) on a grid of ratio 2^(1/4) (steps) or 10^(1/4) (tolerances, at most 1e-2),
@@ -47,7 +41,7 @@ import math
 import time
 from typing import Callable
 
-from _common import best_time, compiled, machine, write  # first: one BLAS thread, float64
+from _common import best_time, compiled, machine, markdown_table, write  # first: one BLAS thread, float64
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -62,8 +56,6 @@ SAVES = 10  # the energy is measured at t = j T / SAVES, j = 0..SAVES
 LEVELS = (1e-6, 1e-8, 1e-10)
 MAX_STEPS = 200_000  # a controlled segment's attempts
 
-
-# ---------------------------------------------------------------- the systems
 
 
 def system_list(quick):
@@ -85,16 +77,12 @@ def system_list(quick):
     }
 
 
-# ---------------------------------------------------------------- runs
-#
-# Every run is ``run(q0, p0, knob) -> Out`` (galerkin_jax's fixed steps also ``build(system, knob)``
-# -> ``run(q0, p0) -> Out``, the knob static): the states at the SAVES + 1 save times and its counts.
-
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass
 class Out:
-    """A run's saved states (shape (SAVES + 1, d) each), status (0: success), accepted and
+    """What every run returns (``run(q0, p0, knob)``; galerkin_jax's fixed steps ``build(system,
+    knob)`` -> ``run(q0, p0)``, the knob static): the saved states (shape (SAVES + 1, d) each), status (0: success), accepted and
     rejected steps, field evaluations (of DH, or of dV/dq for the splittings, at one state;
     galerkin_jax's counted from its iterations, ``evaluations``) and iterations (galerkin_jax:
     ``num_newton_iterations``; the midpoint rules: fixed-point updates; else 0)."""
@@ -130,12 +118,10 @@ def counts(status=0, steps=0, rejected=0, evaluations=0, iterations=0):
 # galerkin_jax
 
 
-def cg_fixed(k, tolerance=0.0):
-    """cG(k) + Gauss k at ``n = SAVES * m`` fixed steps, every m-th state saved: ``integrate(...,
-    n_steps=n, save_every=m)``, a static knob (one compilation per m). Evaluations: ``evaluations``.
-    ``tolerance``: ``SolverOptions.tolerance`` (0: iterate to round-off)."""
-    method = gj.CG(k, gj.gauss_legendre(k))
-    solver = gj.SolverOptions(tolerance=tolerance)
+def fixed(method, count, solver=None):
+    """galerkin_jax's ``method`` at ``n = SAVES * m`` fixed steps, every m-th state saved:
+    ``integrate(..., n_steps=n, save_every=m)``, a static knob (one compilation per m); field
+    evaluations ``count(system, iterations, steps)``."""
 
     def build(system, m):
         n = SAVES * m
@@ -144,11 +130,18 @@ def cg_fixed(k, tolerance=0.0):
             sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=m,
                                error_estimate=False, solver=solver)
             it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
-            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, evaluations(system, k, it, steps), it))
+            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, count(system, it, steps), it))
 
         return run
 
     return build
+
+
+def cg_fixed(k, tolerance=0.0):
+    """cG(k) + Gauss k at fixed steps (``fixed``), iterating to ``SolverOptions.tolerance`` (0:
+    round-off); evaluations: ``evaluations``."""
+    return fixed(gj.CG(k, gj.gauss_legendre(k)), lambda system, it, steps: evaluations(system, k, it, steps),
+                 gj.SolverOptions(tolerance=tolerance))
 
 
 def evaluations(system, k, iterations, attempts):
@@ -211,22 +204,9 @@ def cg_pid(k):
 
 def explicit_fixed(method, forces):
     """An explicit element of galerkin_jax (``gj.structure`` finds every separable system
-    separable): a composition of Stormer-Verlet (``GalerkinVI(1, trapezoid)``) or a
-    ``Splitting``, at ``n = SAVES * m`` fixed steps, every m-th state saved: ``integrate(...,
-    n_steps=n, save_every=m)``, a static knob. Evaluations: ``forces`` gradients of V a step."""
-
-    def build(system, m):
-        n = SAVES * m
-
-        def run(q0, p0):
-            sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=m,
-                               error_estimate=False)
-            steps = sol.stats["num_accepted_steps"]
-            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, forces * steps, sol.stats["num_newton_iterations"]))
-
-        return run
-
-    return build
+    separable), a composition of Stormer-Verlet or a ``Splitting``, at fixed steps (``fixed``);
+    evaluations: ``forces`` gradients of V a step."""
+    return fixed(method, lambda system, it, steps: forces * steps)
 
 
 def explicit_search(method, forces):
@@ -335,8 +315,6 @@ def midpoint(weights=(1.0,)):
     return make
 
 
-# ---------------------------------------------------------------- solvers
-
 
 @dataclasses.dataclass(frozen=True)
 class Solver:
@@ -372,10 +350,6 @@ def separable(system):
     return system.V is not None
 
 
-def non_separable(system):
-    return system.V is None
-
-
 def solver_list(quick):
     """The solvers; ``start`` is a multiple of the system's scale step h0 (fixed steps) or a
     tolerance. ``--quick`` keeps cG(4) fixed, cG(6) PID and every peer."""
@@ -392,9 +366,9 @@ def solver_list(quick):
         Solver("diffrax Dopri8 PID", False, "tol", 1.0, diffrax_run("Dopri8", True), 1e-6),
         Solver("velocity Verlet", False, "steps", 2, verlet(), 0.125, applies=separable),
         Solver("Verlet triple jump (order 4)", False, "steps", 4, verlet(peers.TRIPLE_JUMP), 0.5, applies=separable),
-        Solver("implicit midpoint", False, "steps", 2, midpoint(), 0.125, applies=non_separable),
+        Solver("implicit midpoint", False, "steps", 2, midpoint(), 0.125, applies=lambda system: not separable(system)),
         Solver("midpoint triple jump (order 4)", False, "steps", 4, midpoint(peers.TRIPLE_JUMP), 0.5,
-               applies=non_separable),
+               applies=lambda system: not separable(system)),
     ]
     explicit = [Solver(label, True, "steps", order, explicit_search(method, forces), start, applies=separable,
                        final=explicit_fixed(method, forces)) for label, method, order, forces, start in EXPLICIT]
@@ -417,8 +391,6 @@ def start_index(solver, system):
         return max(4, round(4 * math.log2(system.T / SAVES / (SCALE_STEP * solver.start))))
     return max(LOOSEST_TOL, round(-4 * math.log10(solver.start)))
 
-
-# ---------------------------------------------------------------- the search
 
 
 class Probe:
@@ -550,8 +522,6 @@ def cheapest(probe, target, start, max_runs=12, max_jump=8):
     return passes, f"search ended after {max_runs} runs"
 
 
-# ---------------------------------------------------------------- one system
-
 
 def run_system(system, solvers, cap_s):
     """Every solver at every level on ``system``: the cheapest run per level (found, not yet
@@ -638,8 +608,6 @@ def summarize(result):
     result["summary"] = summary
 
 
-# ---------------------------------------------------------------- tables
-
 
 def describe(run, kind_of):
     if run is None:
@@ -660,26 +628,20 @@ def tables(results):
 
 
 def summary_table(results):
-    lines = ["| system | max \\|dH/H\\| | best galerkin_jax | best peer | ratio (time) | ratio (field evaluations) |",
-             "| --- | --- | --- | --- | --- | --- |"]
+    rows = []
     for name, result in results.items():
         kinds = {s: r["kind"] for s, r in result["solvers"].items()}
         for level, row in result["summary"].items():
-            ratio = "n/a" if row["ratio"] is None else f"{row['ratio']:.2f}x"
-            ev = "n/a" if row["evaluations_ratio"] is None else f"{row['evaluations_ratio']:.2f}x"
-            lines.append(f"| {name} | {level} | {describe(row['ours'], kinds)} | {describe(row['peer'], kinds)} | "
-                         f"{ratio} | {ev} |")
-    return "\n".join(lines)
+            rows.append([name, level, describe(row["ours"], kinds), describe(row["peer"], kinds),
+                         *("n/a" if row[k] is None else f"{row[k]:.2f}x" for k in ("ratio", "evaluations_ratio"))])
+    return markdown_table(["system", "max \\|dH/H\\|", "best galerkin_jax", "best peer", "ratio (time)",
+                           "ratio (field evaluations)"], rows)
 
 
 def detail_table(name, result):
-    header = " | ".join(f"{x:.0e}: ms / steps (+ rejected) / field evaluations" for x in LEVELS)
-    lines = [f"{name}: {result['description']}; d = {result['d']}, H0 = {result['H0']:.6g}", "",
-             f"| solver | {header} |", "| --- |" + " --- |" * len(LEVELS)]
-    for solver, r in result["solvers"].items():
-        cells = [cell(r["kind"], r["levels"][f"{x:.0e}"]) for x in LEVELS]
-        lines.append(f"| {solver} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    rows = [[solver, *(cell(r["kind"], r["levels"][f"{x:.0e}"]) for x in LEVELS)] for solver, r in result["solvers"].items()]
+    header = ["solver"] + [f"{x:.0e}: ms / steps (+ rejected) / field evaluations" for x in LEVELS]
+    return f"{name}: {result['description']}; d = {result['d']}, H0 = {result['H0']:.6g}\n\n" + markdown_table(header, rows)
 
 
 def cell(kind, e):
@@ -696,8 +658,6 @@ def cell(kind, e):
     return (f"{1e3 * e['run_s']:.3g} / {e['steps']}{rejected} / {e['evaluations']} "
             f"({knob_text(kind, e)}{its}, {1e6 * e['run_s'] / e['evaluations']:.2f} us/eval)")
 
-
-# ---------------------------------------------------------------- main
 
 
 def main():

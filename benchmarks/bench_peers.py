@@ -21,7 +21,7 @@ results/peers_work_precision.png; ``--quick`` and ``--only`` add a suffix unless
 import argparse
 import warnings
 
-from _common import RESULTS, best_time, compiled, figure, machine, write  # first: one BLAS thread, float64
+from _common import RESULTS, best_time, compiled, figure, machine, markdown_table, write  # first: one BLAS thread, float64
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -324,69 +324,40 @@ def describe(best):
     return f"{best['solver']}, {knob}: {fmt(best['run_s'])} s (error {best['error']:.1e})"
 
 
-def work_precision_rows(result, title, thresholds):
-    rows = []
-    for threshold in thresholds:
-        entry = result["cheapest"][threshold]
-        label = title if not rows else "same"
-        rows.append([f"{label}, cheapest run with final error <= {threshold}", describe(entry["galerkin_jax"]),
-                     describe(entry["peer"]), f"{fmt(entry['ratio'], 'x')}"])
-    return rows
-
-
-def fput_rows(fput):
-    us = {N: {s: row["us_per_step"] for s, row in fput[N].items()} for N in ("64", "512")}
-    growth = fput["growth_512_over_64"]
-    return [
-        ["beta-FPUT chain, N = 64 (state 128), h = 0.05: µs per step",
-         f"cG(3)+Gauss 3: {fmt(us['64']['cG(3)+Gauss 3'])}; cG(1)+midpoint: {fmt(us['64']['cG(1)+midpoint'])}",
-         f"diffrax Tsit5: {fmt(us['64']['diffrax Tsit5'])}; leapfrog: {fmt(us['64']['leapfrog'])}",
-         f"{fmt(ratio(us['64']['cG(3)+Gauss 3'], us['64']['diffrax Tsit5']), 'x')}; "
-         f"{fmt(ratio(us['64']['cG(1)+midpoint'], us['64']['diffrax Tsit5']), 'x')}"],
-        ["FPUT N = 512 against N = 64: growth of time per step",
-         f"cG(3)+Gauss 3: {fmt(growth['cG(3)+Gauss 3'], 'x')}; cG(1)+midpoint: {fmt(growth['cG(1)+midpoint'], 'x')}",
-         f"diffrax Tsit5: {fmt(growth['diffrax Tsit5'], 'x')}; leapfrog: {fmt(growth['leapfrog'], 'x')}", ""],
-    ]
-
-
-def batch_row(batch):
-    us = {name: row["us_per_member_step"] for name, row in batch.items()}
-    sweep, vmapped, tsit5 = us["cG(2)+Gauss 2 sweep"], us["cG(2)+Gauss 2 vmap(integrate)"], us["diffrax Tsit5 vmap"]
-    return [["256 Kepler orbits at once, 1000 steps of h = 0.01: µs per member-step",
-             f"cG(2)+Gauss 2 (sweep / vmap(integrate)): {fmt(sweep)} / {fmt(vmapped)}", f"diffrax Tsit5: {fmt(tsit5)}",
-             f"{fmt(ratio(sweep, tsit5), 'x')} / {fmt(ratio(vmapped, tsit5), 'x')}"]]
-
-
-def long_row(long):
-    us = {solver: row["us_per_step"] for solver, row in long.items()}
-    n = long["cG(3)+Gauss 3"]["n_steps"]
-    return [[f"Kepler e = 0.6, {n:,} steps of h = 0.01: µs per step",
-             f"cG(3)+Gauss 3: {fmt(us['cG(3)+Gauss 3'])}; cG(1)+midpoint: {fmt(us['cG(1)+midpoint'])}",
-             f"hand-written Gauss RK s=3: {fmt(us['Gauss RK s=3'])}; Dopri8: {fmt(us['diffrax Dopri8'])}; "
-             f"leapfrog: {fmt(us['leapfrog'])}",
-             f"{fmt(ratio(us['cG(3)+Gauss 3'], us['Gauss RK s=3']), 'x')} (cG(3) / Gauss RK)"]]
-
-
 def table(results):
     """The summary in markdown, one row per part and target (those that were run)."""
-    rows = []
+    rows, x = [], lambda a, b: fmt(ratio(a, b), "x")
+    pair = lambda values, a, b, unit="": f"{a}: {fmt(values[a], unit)}; {b}: {fmt(values[b], unit)}"
     if "fput" in results:
-        rows += fput_rows(results["fput"])
-    if "kepler" in results:
-        rows += work_precision_rows(results["kepler"], "Kepler e = 0.6, T = 20", ("1e-10", "1e-12"))
-    if "quartic" in results:
-        rows += work_precision_rows(results["quartic"], "quartic central force c = 1000, T = 1 (relative)",
-                                    ("1e-8", "1e-10"))
+        us = {s: row["us_per_step"] for s, row in results["fput"]["64"].items()}
+        growth = results["fput"]["growth_512_over_64"]
+        rows += [["beta-FPUT chain, N = 64 (state 128), h = 0.05: µs per step", pair(us, "cG(3)+Gauss 3", "cG(1)+midpoint"),
+                  pair(us, "diffrax Tsit5", "leapfrog"), f"{x(us['cG(3)+Gauss 3'], us['diffrax Tsit5'])}; "
+                  f"{x(us['cG(1)+midpoint'], us['diffrax Tsit5'])}"],
+                 ["FPUT N = 512 against N = 64: growth of time per step", pair(growth, "cG(3)+Gauss 3", "cG(1)+midpoint", "x"),
+                  pair(growth, "diffrax Tsit5", "leapfrog", "x"), ""]]
+    for part, title, thresholds in (("kepler", "Kepler e = 0.6, T = 20", ("1e-10", "1e-12")),
+                                    ("quartic", "quartic central force c = 1000, T = 1 (relative)", ("1e-8", "1e-10"))):
+        for i, threshold in enumerate(thresholds if part in results else ()):
+            entry = results[part]["cheapest"][threshold]
+            rows.append([f"{'same' if i else title}, cheapest run with final error <= {threshold}",
+                         describe(entry["galerkin_jax"]), describe(entry["peer"]), fmt(entry["ratio"], "x")])
     if "batch" in results:
-        rows += batch_row(results["batch"])
+        us = {name: row["us_per_member_step"] for name, row in results["batch"].items()}
+        sweep, vmapped, tsit5 = us["cG(2)+Gauss 2 sweep"], us["cG(2)+Gauss 2 vmap(integrate)"], us["diffrax Tsit5 vmap"]
+        rows.append(["256 Kepler orbits at once, 1000 steps of h = 0.01: µs per member-step",
+                     f"cG(2)+Gauss 2 (sweep / vmap(integrate)): {fmt(sweep)} / {fmt(vmapped)}",
+                     f"diffrax Tsit5: {fmt(tsit5)}", f"{x(sweep, tsit5)} / {x(vmapped, tsit5)}"])
     if "long" in results:
-        rows += long_row(results["long"])
+        us = {solver: row["us_per_step"] for solver, row in results["long"].items()}
+        rows.append([f"Kepler e = 0.6, {results['long']['cG(3)+Gauss 3']['n_steps']:,} steps of h = 0.01: µs per step",
+                     pair(us, "cG(3)+Gauss 3", "cG(1)+midpoint"), f"hand-written Gauss RK s=3: {fmt(us['Gauss RK s=3'])}; "
+                     f"{pair(us, 'diffrax Dopri8', 'leapfrog')}", f"{x(us['cG(3)+Gauss 3'], us['Gauss RK s=3'])} (cG(3) / Gauss RK)"])
     for label, r in results.get("explicit", {}).items():
         rows.append([f"{label}, {r['n_steps']:,} Stormer-Verlet steps: µs per step",
                      f"GalerkinVI(1, trapezoid): {fmt(r['galerkin_jax_us_per_step'])}",
                      f"leapfrog: {fmt(r['leapfrog_us_per_step'])}", fmt(r["ratio"], "x")])
-    lines = ["| scene | galerkin_jax | best comparable peer | ratio |", "| --- | --- | --- | --- |"]
-    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows]) + "\n"
+    return markdown_table(["scene", "galerkin_jax", "best comparable peer", "ratio"], rows) + "\n"
 
 
 def plot(results, path):
