@@ -136,6 +136,7 @@ def figure(path, ncols=1, nrows=1, size=(6, 4.5), dpi=100):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    pathlib.Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig, axes = plt.subplots(nrows, ncols, figsize=(size[0] * ncols, size[1] * nrows), squeeze=False)
     yield axes[0] if nrows == 1 else axes
     fig.tight_layout()

@@ -6,7 +6,7 @@ status)``: ``z0`` and ``z1`` are the state ``z = (q, p)`` of shape ``(2d,)`` at 
 status 0 on success; ``knob`` is the number of steps of ``T / knob`` (fixed steps) or ``rtol =
 atol`` (adaptive). The steps themselves (``diffrax_solve``, ``verlet_step``, ``gauss_step``) serve
 the other benchmarks' own loops. A JAX ``run`` is jitted by the caller; a SciPy ``run`` is plain
-Python (``is_python``). The library never imports this.
+Python (``run.is_python``). The library never imports this.
 """
 
 import diffrax
@@ -49,23 +49,16 @@ def diffrax_solve(H, T, z0, solver, dt0, controller, max_steps):
     return solution.ys[-1], status, solution.stats["num_accepted_steps"], solution.stats["num_rejected_steps"]
 
 
-def diffrax_fixed(solver):
-    """diffrax ``solver`` with ``n`` constant steps ``h = T / n`` (the knob is n)."""
+def diffrax_peer(solver, pid=False, max_steps=1_000_000):
+    """diffrax ``solver`` as a peer: ``n`` constant steps of ``T / n`` (the knob n; a few spare
+    steps: the last is clipped to T) or, with ``pid``, a PID controller (the knob rtol = atol,
+    the first step diffrax's)."""
 
-    def make(H, T, n):
-        # a few spare steps: the last step is clipped to T, rounding may add one
-        return lambda z0: diffrax_solve(H, T, z0, solver, T / n, diffrax.ConstantStepSize(), n + 4)[:2]
-
-    return make
-
-
-def diffrax_pid(solver, max_steps=1_000_000):
-    """diffrax ``solver`` with a PID controller, ``rtol = atol = tol`` (the knob), the initial
-    step chosen by diffrax."""
-
-    def make(H, T, tol):
-        controller = diffrax.PIDController(rtol=tol, atol=tol)
-        return lambda z0: diffrax_solve(H, T, z0, solver, None, controller, max_steps)[:2]
+    def make(H, T, knob):
+        if pid:
+            return lambda z0: diffrax_solve(H, T, z0, solver, None, diffrax.PIDController(rtol=knob, atol=knob),
+                                            max_steps)[:2]
+        return lambda z0: diffrax_solve(H, T, z0, solver, T / knob, diffrax.ConstantStepSize(), knob + 4)[:2]
 
     return make
 
@@ -97,10 +90,6 @@ def scipy_ivp(method):
         return run
 
     return make
-
-
-def is_python(run):
-    return getattr(run, "is_python", False)
 
 
 def verlet_step(H, h, weights=(1.0,)):

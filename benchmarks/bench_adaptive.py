@@ -122,9 +122,8 @@ def ours(method, kind):
             h = knob if tt else 1e-3 * T
             sol = gj.integrate(H, q0, p0, method=method, h=h, t1=T, controller=controller, max_steps=MAX_STEPS,
                                error_estimate=False)
-            s = sol.stats
-            return (jnp.concatenate([sol.q[-1], sol.p[-1]]), sol.status, s["num_accepted_steps"], s["num_rejected_steps"],
-                    s["num_newton_iterations"])
+            return (jnp.concatenate([sol.q[-1], sol.p[-1]]), sol.status,
+                    *(sol.stats[f"num_{k}"] for k in ("accepted_steps", "rejected_steps", "newton_iterations")))
 
         return run
 
@@ -215,41 +214,33 @@ def cost_at(points, target, key="run_s"):
 
 
 def ratios(records, problems):
-    """Per problem and target: each solver's interpolated run time and steps, the best peer, the
-    best of ours, and their ratio."""
-    table = []
-    names = sorted({r["solver"] for r in records})
-    for label in problems:
+    """Per problem and target: each solver's interpolated run time, steps and evaluations
+    (``cost_at``), the best peer, the best of ours, and their ratio."""
+    table, names = [], sorted({r["solver"] for r in records})
+    for label, prob in problems.items():
         for target in TARGETS:
-            if target < problems[label].get("resolution", 0.0):
-                table.append(dict(problem=label, target=target, below_resolution=True))
-                print(f"  {label:22s} error {target:.0e}: below the reference's resolution "
-                      f"{problems[label]['resolution']:.0e}", flush=True)
-                continue
-            row = dict(problem=label, target=target, run_s={}, steps={}, evaluations={})
-            for name in names:
-                pts = [r for r in records if r["problem"] == label and r["solver"] == name]
-                row["run_s"][name] = cost_at(pts, target)
-                row["steps"][name] = cost_at(pts, target, "steps")
-                row["evaluations"][name] = cost_at(pts, target, "evaluations")
-            reached = {n: c for n, c in row["run_s"].items() if c is not None}
-            peer_costs = {n: c for n, c in reached.items() if n in PEERS}
-            our_costs = {n: c for n, c in reached.items() if n not in PEERS}
-            if peer_costs and our_costs:
-                bp, bo = min(peer_costs, key=peer_costs.get), min(our_costs, key=our_costs.get)
-                row.update(best_peer=bp, best_ours=bo, ratio=our_costs[bo] / peer_costs[bp],
-                           ratio_pid=min((c for n, c in our_costs.items() if "PID" in n), default=np.nan) / peer_costs[bp])
-                ev = {n: c for n, c in row["evaluations"].items() if c is not None}
-                ev_peer = min(c for n, c in ev.items() if n in PEERS)
-                ev_ours = min(c for n, c in ev.items() if n not in PEERS)
-                row["ratio_evaluations"] = ev_ours / ev_peer
+            row = dict(problem=label, target=target)
             table.append(row)
-            if "ratio" in row:
-                print(f"  {label:22s} error {target:.0e}: ours {row['best_ours']} {1e3 * our_costs[bo]:.2f} ms, "
-                      f"peer {row['best_peer']} {1e3 * peer_costs[bp]:.2f} ms: ratio {row['ratio']:.2f} "
-                      f"(best PID {row['ratio_pid']:.2f}; evaluations {row['ratio_evaluations']:.2f})", flush=True)
-            else:
-                print(f"  {label:22s} error {target:.0e}: not reached by both sides {sorted(reached)}", flush=True)
+            if target < prob.get("resolution", 0.0):
+                row["below_resolution"] = True
+                print(f"  {label:22s} error {target:.0e}: below the reference's resolution {prob['resolution']:.0e}")
+                continue
+            for key in ("run_s", "steps", "evaluations"):
+                row[key] = {n: cost_at([r for r in records if r["problem"] == label and r["solver"] == n], target, key)
+                            for n in names}
+            side = lambda key, peer: {n: c for n, c in row[key].items() if c is not None and (n in PEERS) == peer}
+            theirs, ours = side("run_s", True), side("run_s", False)
+            if not (theirs and ours):
+                print(f"  {label:22s} error {target:.0e}: not reached by both sides {sorted(theirs | ours)}", flush=True)
+                continue
+            bp, bo = min(theirs, key=theirs.get), min(ours, key=ours.get)
+            row.update(best_peer=bp, best_ours=bo, ratio=ours[bo] / theirs[bp],
+                       ratio_pid=min((c for n, c in ours.items() if "PID" in n), default=np.nan) / theirs[bp],
+                       ratio_evaluations=min(side("evaluations", False).values())
+                       / min(side("evaluations", True).values()))
+            print(f"  {label:22s} error {target:.0e}: ours {bo} {1e3 * ours[bo]:.2f} ms, peer {bp} "
+                  f"{1e3 * theirs[bp]:.2f} ms: ratio {row['ratio']:.2f} (best PID {row['ratio_pid']:.2f}; "
+                  f"evaluations {row['ratio_evaluations']:.2f})", flush=True)
     return table
 
 
@@ -343,14 +334,10 @@ def long_runs(orbits, quick, e=0.9):
             if kind == "uniform":  # the number of steps is static
                 compile_s, fixed = compiled(run(knob), q0, p0)
                 call = lambda _: fixed(q0, p0)
-            run_s = np.inf
-            for _ in range(2):  # the best of two calls: a program's first call also allocates its buffers
-                t0 = time.perf_counter()
-                dH, t, steps, status, newton = jax.block_until_ready(call(jnp.asarray(knob)))
-                run_s = min(run_s, time.perf_counter() - t0)
-            dH, t = np.abs(np.asarray(dH)), np.asarray(t)
-            ok = np.isfinite(t)
-            dH, t = dH[ok], t[ok]
+            dH, t, steps, status, newton = call(jnp.asarray(knob))
+            run_s = best_time(call, jnp.asarray(knob), repeat=1, min_s=0.0)  # the second call: the first allocates
+            ok = np.isfinite(np.asarray(t))
+            dH, t = np.abs(np.asarray(dH))[ok], np.asarray(t)[ok]
             rec = dict(kind=kind, knob=knob, status=int(status), steps=int(steps), newton_iterations=int(newton),
                        compile_s=compile_s, run_s=run_s, us_per_step=1e6 * run_s / int(steps),
                        **energy_quarters(t, dH, T))
@@ -393,9 +380,7 @@ def plot_energy(curves, path, e):
         for (kind, knob), per_orbit in curves.items():
             ax.semilogy(np.arange(1, per_orbit.size + 1), np.maximum(per_orbit, 1e-17), styles[kind], lw=1.0,
                         label=f"{kind} {knob:g}")
-        ax.set_xlabel("orbit")
-        ax.set_ylabel("max |H - H0| over the orbit's nodes")
-        ax.set_title(f"Kepler e = {e}, cG(4)+Gauss 4")
+        ax.set(xlabel="orbit", ylabel="max |H - H0| over the orbit's nodes", title=f"Kepler e = {e}, cG(4)+Gauss 4")
         ax.legend(fontsize=7, ncol=2)
 
 

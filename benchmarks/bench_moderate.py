@@ -20,15 +20,12 @@ and its triple jump (separable systems), the implicit midpoint rule and its trip
 chain), in plain JAX (``_peers``). No TimeTransform: the softened Plummer sphere has no close
 encounters to follow (with its default s a first try compiled in 58 s; docs/performance.md).
 
-For each solver and accuracy the cheapest run that meets it: the knob (steps per segment or
-the tolerance) on a grid of ratio 2^(1/4) (steps) or 10^(1/4) (tolerances, at most 1e-2),
-searched from a start (``Solver.start``) by predictions from the error's measured slope, down
-to the knob below the first that meets it. One compilation per solver and system serves the
-search (the knob traced; galerkin_jax's fixed steps through a stand-in, ``cg_fixed_search``);
-a knob whose run is predicted to take more than ``--cap`` seconds is not run (recorded as not
-reached, with the prediction). Each cheapest run is then compiled ahead of time (galerkin_jax's
-fixed steps: ``integrate(n_steps=n)``, its own compilation, for the k within 1.5x of the best k
-in the search) and timed as the best of several calls, twice, minutes apart; compile time apart.
+For each solver and accuracy the cheapest run that meets it (``cheapest``): the knob on a grid
+of ratio 2^(1/4) (steps) or 10^(1/4) (tolerances), searched by predictions from the error's
+measured slope, one compilation per solver and system (the knob traced; fixed steps through a
+stand-in, ``cg_fixed_search``); a run predicted to take more than ``--cap`` seconds is recorded
+as not reached. Each cheapest run is then compiled ahead of time (``Solver.final``) and timed
+as the best of several calls, twice, minutes apart; compile time apart.
 
 Writes results/moderate.json (every run) and results/moderate.md (the tables, also printed);
 ``--quick`` (short spans, small systems, a few solvers) and ``--only`` add a suffix to these
@@ -39,7 +36,7 @@ import argparse
 import dataclasses
 import math
 import time
-from typing import Callable
+from typing import Callable, NamedTuple
 
 from _common import best_time, compiled, machine, markdown_table, write  # first: one BLAS thread, float64
 
@@ -78,14 +75,12 @@ def system_list(quick):
 
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass
-class Out:
+class Out(NamedTuple):
     """What every run returns (``run(q0, p0, knob)``; galerkin_jax's fixed steps ``build(system,
-    knob)`` -> ``run(q0, p0)``, the knob static): the saved states (shape (SAVES + 1, d) each), status (0: success), accepted and
-    rejected steps, field evaluations (of DH, or of dV/dq for the splittings, at one state;
-    galerkin_jax's counted from its iterations, ``evaluations``) and iterations (galerkin_jax:
-    ``num_newton_iterations``; the midpoint rules: fixed-point updates; else 0)."""
+    knob)`` -> ``run(q0, p0)``, the knob static): the states at the SAVES + 1 save times (shape
+    (SAVES + 1, d) each), status (0: success), accepted and rejected steps, field evaluations
+    (of DH, or of dV/dq for the explicit ones, at one state) and iterations (galerkin_jax's
+    ``num_newton_iterations``; the midpoint rules' fixed-point updates; else 0)."""
 
     q: jax.Array
     p: jax.Array
