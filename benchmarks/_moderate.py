@@ -55,7 +55,6 @@ def separable(V, masses):
     return lambda q, p: 0.5 * jnp.sum(inverse * p * p) + V(q)
 
 
-
 def pair_potential(phi):
     """V(q) = sum_{i < j} phi(|x_i - x_j|^2) over the atoms of q = (x_1, y_1, z_1, x_2, ...),
     written as a user of JAX would: the full matrix of squared distances, its diagonal masked
@@ -171,7 +170,6 @@ def morse(n, temperature=0.3, T=50.0, seed=0, rho=6.0):
     return cluster("morse", n, temperature, T, seed, rho)
 
 
-
 def plummer(n, softening=None, T=10.0, seed=0):
     """A Plummer sphere of ``n`` equal masses, G = 1, total mass 1, Henon units (virial radius 1,
     so the Plummer scale is a = 3 pi / 16; crossing time 2 sqrt(2)). Radii and speeds are drawn
@@ -215,7 +213,6 @@ def _directions(rng, n):
     """``n`` isotropic unit vectors."""
     u = rng.normal(size=(n, 3))
     return u / np.linalg.norm(u, axis=1, keepdims=True)
-
 
 
 def pendulum_chain(n, angle=0.5, T=20.0, seed=0):

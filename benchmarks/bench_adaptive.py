@@ -51,7 +51,6 @@ def gauss(k):
     return gj.CG(k, gj.gauss_legendre(k))
 
 
-
 KEPLER_H = scenes.kepler().H  # one function, so that both eccentricities share a compilation
 
 
@@ -108,7 +107,6 @@ def pythagorean_problem(T=5.0):
           f"resolution {check['resolution']:.1e}")
     return dict(H=three_body, q0=q0, p0=p0, T=T, z1=ends[1], reference=check, resolution=check["resolution"],
                 tt_h=(0.32, 0.16, 0.08, 0.04, 0.02))
-
 
 
 def ours(method, kind):
@@ -261,7 +259,6 @@ def plot_work_precision(records, problems, path):
         axes[0, 0].legend(fontsize=7)
 
 
-
 def kepler_density(q0):
     """Kepler's own step density s = (r / r0)^(3/2), the orbit's dynamical time scale at radius r
     (Kepler's third law; the Sundman transformation's power), normalised to s(z0) = 1: one
@@ -382,7 +379,6 @@ def plot_energy(curves, path, e):
                         label=f"{kind} {knob:g}")
         ax.set(xlabel="orbit", ylabel="max |H - H0| over the orbit's nodes", title=f"Kepler e = {e}, cG(4)+Gauss 4")
         ax.legend(fontsize=7, ncol=2)
-
 
 
 def main():

@@ -1,6 +1,6 @@
 """Time to the first answer: where a run's first call goes, beside diffrax's equivalent.
 
-    python -m benchmarks compile [--only kepler fput cli tour] [--kinds KIND ...] [--name compile]
+    python -m benchmarks compile [--only kepler fput] [--kinds KIND ...] [--name compile]
 
 For every public entry point and run kind, on Kepler (d = 2, cG(6) + Gauss 6, one orbit) and on
 the beta-FPUT chain (N = 64, cG(4) + Gauss 4), the first call of a fresh function in one
@@ -11,20 +11,12 @@ program's size: StableHLO operations of the lowered module (``lowered.as_text()`
 ``tests/test_program.py`` budgets) and the kernels (fusions) XLA compiled, which set the
 compile time (about 4-8 ms each on this CPU). diffrax's equivalent runs in the same process,
 with the same state and span: Dopri8 with a constant step or with its PID controller (and
-Tsit5 for the run kinds the issue compared).
-
-``cli``: ``galerkin-jax run`` in a fresh process, cold and again with its compilation cache
-(the wall time of the command, and the compile time it prints). ``tour``: the README's tour in
-fresh processes, without and with the cache. Results: ``results/compile.json``.
+Tsit5 for the run kinds the issue compared). Results: ``results/compile.json``. (The CLI and
+the README's tour with the compilation cache, parts ``cli`` and ``tour``: a study at 8777906.)
 """
 
 import argparse
-import os
-import pathlib
 import re
-import subprocess
-import sys
-import tempfile
 import time
 
 from _common import write  # first: one BLAS thread, float64
@@ -194,45 +186,9 @@ def problem_part(name, problem, kinds=None):
     return rows
 
 
-def cli_part():
-    """``galerkin-jax run`` in fresh processes: without the cache, then twice with it."""
-    rows = {}
-    with tempfile.TemporaryDirectory() as folder:
-        for label, cache in (("cold", "off"), ("cache, first", "on"), ("cache, again", "on")):
-            env = dict(os.environ, GALERKIN_JAX_CACHE=os.path.join(folder, "cache") if cache == "on" else "")
-            t0 = time.perf_counter()
-            done = subprocess.run([sys.executable, "-m", "galerkin_jax", "run", "--out", os.path.join(folder, "out")],
-                                  capture_output=True, text=True, env=env, check=True)
-            wall = time.perf_counter() - t0
-            printed = re.search(r"compile ([\d.]+) s, run ([\d.]+) s", done.stdout)
-            rows[label] = dict(wall=wall, compile=float(printed.group(1)) if printed else None)
-            print(f"cli     {label:28s} wall {wall:5.2f} s  compile (printed) {rows[label]['compile']}", flush=True)
-    return rows
-
-
-_TOUR = re.compile(r"### From Python\n\n```python\n(.*?)```", re.S)
-
-
-def tour_part():
-    """The README's tour (its first Python block) in fresh processes: without the compilation
-    cache, then twice with it (``gj.use_compilation_cache``, a new folder): the wall time from
-    the first import to its last result."""
-    readme = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
-    code = ("import time\nstart = time.perf_counter()\n" + _TOUR.search(readme).group(1)
-            + "\njax.block_until_ready((sol, dense, q, q1, A, h))\nprint('tour', time.perf_counter() - start)\n")
-    rows = {}
-    with tempfile.TemporaryDirectory() as folder:
-        for label, cache in (("no cache", ""), ("cache, first", folder), ("cache, again", folder)):
-            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                                  env=dict(os.environ, GALERKIN_JAX_CACHE=cache))
-            rows[label] = float(done.stdout.split()[-1])
-            print(f"tour    {label:28s} wall {rows[label]:5.2f} s", flush=True)
-    return rows
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--only", nargs="*", default=["kepler", "fput", "cli", "tour"])
+    parser.add_argument("--only", nargs="+", choices=("kepler", "fput"), default=["kepler", "fput"])
     parser.add_argument("--kinds", nargs="*", help="run kinds to measure (default: all), e.g. 'integrate PID'")
     parser.add_argument("--name", default="compile")
     options = parser.parse_args()
@@ -241,10 +197,6 @@ def main():
         results["kepler"] = problem_part("kepler", kepler(), options.kinds)
     if "fput" in options.only:
         results["fput"] = problem_part("fput", fput(), options.kinds)
-    if "cli" in options.only:
-        results["cli"] = cli_part()
-    if "tour" in options.only:
-        results["tour"] = tour_part()
     write(options.name, results)
 
 

@@ -250,7 +250,6 @@ def members_part(tolerances=tuple(10.0 ** -np.arange(4, 12))):
     return results
 
 
-
 PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "members": members_part,
          "fixed": fixed_part}
 

@@ -23,7 +23,7 @@ encounters to follow (with its default s a first try compiled in 58 s; docs/perf
 For each solver and accuracy the cheapest run that meets it (``cheapest``): the knob on a grid
 of ratio 2^(1/4) (steps) or 10^(1/4) (tolerances), searched by predictions from the error's
 measured slope, one compilation per solver and system (the knob traced; fixed steps through a
-stand-in, ``cg_fixed_search``); a run predicted to take more than ``--cap`` seconds is recorded
+stand-in, ``cg_fixed(search=True)``); a run predicted to take more than ``--cap`` seconds is recorded
 as not reached. Each cheapest run is then compiled ahead of time (``Solver.final``) and timed
 as the best of several calls, twice, minutes apart; compile time apart.
 
@@ -34,6 +34,7 @@ names unless ``--name`` is given.
 
 import argparse
 import dataclasses
+import functools
 import math
 import time
 from typing import Callable, NamedTuple
@@ -52,7 +53,6 @@ import galerkin_jax as gj  # noqa: E402
 SAVES = 10  # the energy is measured at t = j T / SAVES, j = 0..SAVES
 LEVELS = (1e-6, 1e-8, 1e-10)
 MAX_STEPS = 200_000  # a controlled segment's attempts
-
 
 
 def system_list(quick):
@@ -74,13 +74,11 @@ def system_list(quick):
     }
 
 
-
 class Out(NamedTuple):
-    """What every run returns (``run(q0, p0, knob)``; galerkin_jax's fixed steps ``build(system,
-    knob)`` -> ``run(q0, p0)``, the knob static): the states at the SAVES + 1 save times (shape
-    (SAVES + 1, d) each), status (0: success), accepted and rejected steps, field evaluations
-    (of DH, or of dV/dq for the explicit ones, at one state) and iterations (galerkin_jax's
-    ``num_newton_iterations``; the midpoint rules' fixed-point updates; else 0)."""
+    """What every run returns (``run(system, q0, p0, knob)``): the states at the SAVES + 1 save
+    times (shape (SAVES + 1, d) each), status (0: success), accepted and rejected steps, field
+    evaluations (of DH, or of dV/dq for the explicit ones, at one state) and iterations
+    (galerkin_jax's ``num_newton_iterations``; the midpoint rules' fixed-point updates; else 0)."""
 
     q: jax.Array
     p: jax.Array
@@ -110,121 +108,89 @@ def counts(status=0, steps=0, rejected=0, evaluations=0, iterations=0):
     return tuple(jnp.asarray(x).astype(jnp.int32) for x in (status, steps, rejected, evaluations, iterations))
 
 
-# galerkin_jax
-
-
-def fixed(method, count, solver=None):
-    """galerkin_jax's ``method`` at ``n = SAVES * m`` fixed steps, every m-th state saved:
-    ``integrate(..., n_steps=n, save_every=m)``, a static knob (one compilation per m); field
-    evaluations ``count(system, iterations, steps)``."""
-
-    def build(system, m):
-        n = SAVES * m
-
-        def run(q0, p0):
-            sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=m,
-                               error_estimate=False, solver=solver)
-            it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
-            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, count(system, it, steps), it))
-
-        return run
-
-    return build
-
-
-def cg_fixed(k, tolerance=0.0):
-    """cG(k) + Gauss k at fixed steps (``fixed``), iterating to ``SolverOptions.tolerance`` (0:
-    round-off); evaluations: ``evaluations``."""
-    return fixed(gj.CG(k, gj.gauss_legendre(k)), lambda system, it, steps: evaluations(system, k, it, steps),
-                 gj.SolverOptions(tolerance=tolerance))
-
-
 def evaluations(system, k, iterations, attempts):
     """galerkin_jax's field evaluations, counted from its iterations: k (one per Gauss point) per
     residual, one residual per iteration and one per attempt (the start's). On states of more
     than 8 degrees of freedom a residual is the Gauss-Seidel sweep's two halves, dH/dq and
-    dH/dp, two calls of H (counted by a callback at 8777906): for a separable H the dH/dp half needs no
-    gradient of V, so it counts once; for the chain each half is a gradient of H, so twice."""
-    halves = 2 if system.V is None and system.q0.size > 8 else 1
-    return k * halves * (iterations + attempts)
+    dH/dp, two calls of H (counted by a callback at 8777906): for a separable H the dH/dp half
+    needs no gradient of V, so it counts once; for the chain each half is a gradient of H, twice."""
+    return k * (2 if system.V is None and system.q0.size > 8 else 1) * (iterations + attempts)
 
 
-def cg_fixed_search(k, tolerance=0.0):
-    """The search's stand-in for ``cg_fixed(k)``, compiled once: the same fixed steps with h
-    traced, through ``integrate(..., t1=T, save_at=...)`` (a while loop over elements of the
-    constant h, the states at the save times from the element polynomials, which end there).
-    Its errors equal the static runs' to six digits (LJ13, cG(4), seven step counts checked)."""
-    method = gj.CG(k, gj.gauss_legendre(k))
-    solver = gj.SolverOptions(tolerance=tolerance)
+def fixed(method, count, solver=None):
+    """galerkin_jax's ``method`` at ``n = SAVES * m`` fixed steps, every m-th state saved
+    (``integrate(..., n_steps=n, save_every=m)``: m static, a compilation each); field
+    evaluations ``count(system, iterations, steps)``. A ``Solver.final``."""
 
-    def make(system):
-        ts = jnp.linspace(0.0, system.T, SAVES + 1)
+    def run(system, q0, p0, m):
+        sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / (SAVES * m), n_steps=SAVES * m, save_every=m,
+                           error_estimate=False, solver=solver)
+        it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
+        return Out(sol.q, sol.p, *counts(sol.status, steps, 0, count(system, it, steps), it))
 
-        def run(q0, p0, m):
-            sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / (SAVES * m), t1=system.T, save_at=ts,
-                               max_steps=SAVES * MAX_STEPS, error_estimate=False, solver=solver)
-            it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
-            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, evaluations(system, k, it, steps), it))
+    return run
 
-        return run
 
-    return make
+def cg_fixed(k, tolerance=0.0, search=False):
+    """cG(k) + Gauss k at fixed steps, iterating to ``SolverOptions.tolerance`` (0: round-off).
+    With ``search`` the search's stand-in, compiled once: h traced, through ``integrate(...,
+    t1=T, save_at=...)`` (a while loop over elements of the constant h, the saved states from
+    the element polynomials, which end there; its errors equal the static runs' to six digits,
+    LJ13, cG(4), seven step counts checked)."""
+    method, solver = gj.CG(k, gj.gauss_legendre(k)), gj.SolverOptions(tolerance=tolerance)
+    count = lambda system, it, steps: evaluations(system, k, it, steps)
+    if not search:
+        return fixed(method, count, solver)
+
+    def run(system, q0, p0, m):
+        sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / (SAVES * m), t1=system.T,
+                           save_at=jnp.linspace(0.0, system.T, SAVES + 1), max_steps=SAVES * MAX_STEPS,
+                           error_estimate=False, solver=solver)
+        it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
+        return Out(sol.q, sol.p, *counts(sol.status, steps, 0, count(system, it, steps), it))
+
+    return run
 
 
 def cg_pid(k):
-    """cG(k) + Gauss k with a PIDController, knob rtol = atol, one run to T / SAVES per segment.
-    Evaluations as ``evaluations`` per attempt, plus the controller's embedded estimate, one
-    per attempt."""
+    """cG(k) + Gauss k with a PIDController, knob rtol = atol, one run to T / SAVES per segment
+    (the next one's first step the last one's mean). Evaluations as ``evaluations`` per attempt,
+    plus the controller's embedded estimate, one per attempt."""
     method = gj.CG(k, gj.gauss_legendre(k))
 
-    def make(system):
+    def run(system, q0, p0, tol):
         span = system.T / SAVES
 
-        def run(q0, p0, tol):
-            def step_segment(q, p, h):
-                sol = gj.integrate(system.H, q, p, method=method, h=h, t1=span, controller=gj.PIDController(tol, tol),
-                                   max_steps=MAX_STEPS, error_estimate=False)
-                s = sol.stats
-                steps, rejected, it = s["num_accepted_steps"], s["num_rejected_steps"], s["num_newton_iterations"]
-                count = evaluations(system, k, it, steps + rejected) + steps + rejected
-                h_next = span / jnp.maximum(steps, 1)
-                return sol.q[-1], sol.p[-1], h_next, counts(sol.status, steps, rejected, count, it)
+        def step_segment(q, p, h):
+            sol = gj.integrate(system.H, q, p, method=method, h=h, t1=span, controller=gj.PIDController(tol, tol),
+                               max_steps=MAX_STEPS, error_estimate=False)
+            steps, rejected, it = (sol.stats[f"num_{x}"] for x in ("accepted_steps", "rejected_steps", "newton_iterations"))
+            count = evaluations(system, k, it, steps + rejected) + steps + rejected
+            return sol.q[-1], sol.p[-1], span / jnp.maximum(steps, 1), counts(sol.status, steps, rejected, count, it)
 
-            return segments(step_segment, q0, p0, jnp.asarray(1e-3 * span, q0.dtype))
+        return segments(step_segment, q0, p0, jnp.asarray(1e-3 * span, q0.dtype))
 
-        return run
-
-    return make
+    return run
 
 
-def explicit_fixed(method, forces):
+def explicit(method, forces, search=False):
     """An explicit element of galerkin_jax (``gj.structure`` finds every separable system
-    separable), a composition of Stormer-Verlet or a ``Splitting``, at fixed steps (``fixed``);
-    evaluations: ``forces`` gradients of V a step."""
-    return fixed(method, lambda system, it, steps: forces * steps)
+    separable), a composition of Stormer-Verlet or a ``Splitting``, at fixed steps (``fixed``),
+    ``forces`` gradients of V a step. With ``search`` the search's stand-in, compiled once (m
+    traced): ``gj.step`` in a ``fori_loop``, the same elements (each start's force computed
+    again, which the scan hands on: not timed, see ``choose_finals``)."""
+    if not search:
+        return fixed(method, lambda system, it, steps: forces * steps)
 
+    def run(system, q0, p0, m):
+        def step_segment(q, p, c):
+            h = system.T / SAVES / m
+            q, p = jax.lax.fori_loop(0, m, lambda _, s: gj.step(system.H, *s, method=method, h=h), (q, p))
+            return q, p, c, counts(jnp.where(jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(p)), 0, 1), m, 0, forces * m)
 
-def explicit_search(method, forces):
-    """The search's stand-in for ``explicit_fixed``, compiled once (m traced): ``gj.step`` in a
-    ``fori_loop``, the same elements (the force at each element's start computed again, which
-    the scan hands on: not timed, see ``choose_finals``)."""
+        return segments(step_segment, q0, p0, jnp.zeros((), q0.dtype))
 
-    def make(system):
-        span = system.T / SAVES
-
-        def run(q0, p0, m):
-            h = span / m
-
-            def step_segment(q, p, c):
-                q, p = jax.lax.fori_loop(0, m, lambda _, s: gj.step(system.H, *s, method=method, h=h), (q, p))
-                status = jnp.where(jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(p)), 0, 1)
-                return q, p, c, counts(status, m, 0, forces * m)
-
-            return segments(step_segment, q0, p0, jnp.zeros((), q0.dtype))
-
-        return run
-
-    return make
+    return run
 
 
 # galerkin_jax's explicit candidates on separable H: (label, method, order, forces a step, start)
@@ -237,10 +203,6 @@ EXPLICIT = [
     ("Splitting blanes_moan_rkn6", gj.Splitting("blanes_moan_rkn6"), 6, 11, 1.0),
     ("Composition kahan_li8 of Verlet", gj.Composition(VERLET, "kahan_li8"), 8, 15, 1.5),
 ]
-
-
-# diffrax
-
 DIFFRAX_STAGES = {"Tsit5": 6, "Dopri8": 12}  # new field evaluations per attempt (first same as last)
 
 
@@ -249,42 +211,35 @@ def diffrax_run(name, controlled):
     of T / (SAVES m) per segment (ConstantStepSize) or rtol = atol (PIDController)."""
     solver = getattr(diffrax, name)()
 
-    def make(system):
+    def run(system, q0, p0, knob):
         span, d = system.T / SAVES, system.q0.size
+        controller = diffrax.PIDController(rtol=knob, atol=knob) if controlled else diffrax.ConstantStepSize()
 
-        def run(q0, p0, knob):
-            controller = diffrax.PIDController(rtol=knob, atol=knob) if controlled else diffrax.ConstantStepSize()
+        def step_segment(q, p, dt0):
+            z, status, accepted, rejected = peers.diffrax_solve(system.H, span, jnp.concatenate([q, p]), solver, dt0,
+                                                                controller, MAX_STEPS)
+            dt = span / jnp.maximum(accepted, 1) if controlled else dt0
+            return z[:d], z[d:], dt, counts(status, accepted, rejected, DIFFRAX_STAGES[name] * (accepted + rejected) + 1)
 
-            def step_segment(q, p, dt0):
-                z, status, accepted, rejected = peers.diffrax_solve(system.H, span, jnp.concatenate([q, p]), solver,
-                                                                    dt0, controller, MAX_STEPS)
-                dt = span / jnp.maximum(accepted, 1) if controlled else dt0
-                return z[:d], z[d:], dt, counts(status, accepted, rejected, DIFFRAX_STAGES[name] * (accepted + rejected) + 1)
+        return segments(step_segment, q0, p0, jnp.asarray(1e-3 * span if controlled else span / knob, q0.dtype))
 
-            return segments(step_segment, q0, p0, jnp.asarray(1e-3 * span if controlled else span / knob, q0.dtype))
-
-        return run
-
-    return make
+    return run
 
 
 def verlet(weights=(1.0,)):
     """Velocity Verlet (``_peers.verlet_step``: one gradient of V per substep), composed with
     ``weights`` (Yoshida's triple jump: order 4); knob m steps of T / (SAVES m) per segment."""
 
-    def make(system):
-        def run(q0, p0, m):
-            step = peers.verlet_step(system.H, system.T / SAVES / m, weights)
+    def run(system, q0, p0, m):
+        step = peers.verlet_step(system.H, system.T / SAVES / m, weights)
 
-            def step_segment(q, p, f):
-                q, p, f = jax.lax.fori_loop(0, m, lambda _, c: step(c), (q, p, f))
-                return q, p, f, counts(0, m, 0, len(weights) * m)
+        def step_segment(q, p, f):
+            q, p, f = jax.lax.fori_loop(0, m, lambda _, c: step(c), (q, p, f))
+            return q, p, f, counts(0, m, 0, len(weights) * m)
 
-            return segments(step_segment, q0, p0, jax.grad(system.H)(q0, p0))
+        return segments(step_segment, q0, p0, jax.grad(system.H)(q0, p0))
 
-        return run
-
-    return make
+    return run
 
 
 def midpoint(weights=(1.0,)):
@@ -292,23 +247,16 @@ def midpoint(weights=(1.0,)):
     round-off, each update one field evaluation; status 1 if a step took its cap), composed with
     ``weights`` (the triple jump: order 4); knob m steps of T / (SAVES m) per segment."""
 
-    def make(system):
-        d = system.q0.size
+    def run(system, q0, p0, m):
+        step, d, zero = peers.gauss_step(system.H, system.T / SAVES / m, 1, weights), q0.size, jnp.zeros((), jnp.int32)
 
-        def run(q0, p0, m):
-            step = peers.gauss_step(system.H, system.T / SAVES / m, 1, weights)
+        def step_segment(q, p, Zs):
+            z, Zs, status, it = jax.lax.fori_loop(0, m, lambda _, c: step(c), (jnp.concatenate([q, p]), Zs, zero, zero))
+            return z[:d], z[d:], Zs, counts(status, m, 0, it, it)
 
-            def step_segment(q, p, Zs):
-                zero = jnp.zeros((), jnp.int32)
-                z, Zs, status, it = jax.lax.fori_loop(0, m, lambda _, c: step(c), (jnp.concatenate([q, p]), Zs, zero, zero))
-                return z[:d], z[d:], Zs, counts(status, m, 0, it, it)
+        return segments(step_segment, q0, p0, jnp.zeros((len(weights), 1, 2 * d), q0.dtype))
 
-            return segments(step_segment, q0, p0, jnp.zeros((len(weights), 1, 2 * d), q0.dtype))
-
-        return run
-
-    return make
-
+    return run
 
 
 @dataclasses.dataclass(frozen=True)
@@ -322,13 +270,13 @@ class Solver:
             atol, i -> 10^(-i/4)); the cost grows with i.
         order: the error's expected exponent in the knob (steps: error ~ m^-order; tol: ~ tol^order),
             for the first predictions; later ones use the measured slope.
-        make: ``make(system) -> run(q0, p0, knob)``, compiled once per system (the knob traced).
+        make: ``run(system, q0, p0, knob) -> Out``, compiled once per system (the knob traced).
         start: where the search starts: a multiple c of the system's scale step h0 (steps: m =
             T / (SAVES c h0)) or the tolerance.
         applies: which systems it runs on.
-        final: ``final(system, knob) -> run(q0, p0)`` where the timed run differs from ``make``'s
-            (galerkin_jax's fixed steps: n_steps is static); each cheapest knob is compiled
-            and checked again with it.
+        final: ``run(system, q0, p0, knob)`` with the knob static, where the timed run differs
+            from ``make``'s (galerkin_jax's fixed steps: n_steps is static); each cheapest knob
+            is compiled and checked again with it.
     """
 
     name: str
@@ -348,11 +296,11 @@ def separable(system):
 def solver_list(quick):
     """The solvers; ``start`` is a multiple of the system's scale step h0 (fixed steps) or a
     tolerance. ``--quick`` keeps cG(4) fixed, cG(6) PID and every peer."""
-    cg = [Solver(f"cG({k})+Gauss {k}", True, "steps", 2 * k, cg_fixed_search(k), start, final=cg_fixed(k))
+    cg = [Solver(f"cG({k})+Gauss {k}", True, "steps", 2 * k, cg_fixed(k, search=True), start, final=cg_fixed(k))
           for k, start in ((3, 1.0), (4, 1.0), (6, 1.5))]
     pid = [Solver(f"cG({k})+Gauss {k} PID", True, "tol", 1.0, cg_pid(k), 1e-4) for k in (4, 6)]
     # iterating to 1e-10 of the unknowns instead of their round-off (``SolverOptions.tolerance``)
-    loose = [Solver(f"cG({k})+Gauss {k} tolerance 1e-10", True, "steps", 2 * k, cg_fixed_search(k, 1e-10), 1.0,
+    loose = [Solver(f"cG({k})+Gauss {k} tolerance 1e-10", True, "steps", 2 * k, cg_fixed(k, 1e-10, search=True), 1.0,
                     final=cg_fixed(k, 1e-10)) for k in (3, 4)]
     named_peers = [
         Solver("diffrax Tsit5", False, "steps", 5, diffrax_run("Tsit5", False), 0.5),
@@ -365,8 +313,8 @@ def solver_list(quick):
         Solver("midpoint triple jump (order 4)", False, "steps", 4, midpoint(peers.TRIPLE_JUMP), 0.5,
                applies=lambda system: not separable(system)),
     ]
-    explicit = [Solver(label, True, "steps", order, explicit_search(method, forces), start, applies=separable,
-                       final=explicit_fixed(method, forces)) for label, method, order, forces, start in EXPLICIT]
+    explicit = [Solver(label, True, "steps", order, explicit(method, forces, search=True), start, applies=separable,
+                       final=explicit(method, forces)) for label, method, order, forces, start in EXPLICIT]
     if quick:
         return [cg[1], pid[1]] + explicit + named_peers
     return cg + pid + loose + explicit + named_peers
@@ -387,7 +335,6 @@ def start_index(solver, system):
     return max(LOOSEST_TOL, round(-4 * math.log10(solver.start)))
 
 
-
 class Probe:
     """One solver on one system: its runs by grid index (compiled once, the knob traced), each
     with its relative energy error; and the ``final`` runs of a solver that has them."""
@@ -405,7 +352,7 @@ class Probe:
         if i not in self.calls:
             knob = knob_value(self.solver, i)
             if self.solver.final is not None:
-                self.calls[i] = compiled(self.solver.final(self.system, knob), self.q0, self.p0)
+                self.calls[i] = compiled(functools.partial(self.solver.final, self.system, m=knob), self.q0, self.p0)
             else:
                 compile_s, call = self.searching()
                 self.calls[i] = (compile_s, lambda q0, p0, call=call, k=jnp.asarray(knob): call(q0, p0, k))
@@ -414,7 +361,7 @@ class Probe:
     def searching(self):
         if self.shared is None:
             start = knob_value(self.solver, start_index(self.solver, self.system))
-            self.shared = compiled(self.solver.make(self.system), self.q0, self.p0, jnp.asarray(start))
+            self.shared = compiled(functools.partial(self.solver.make, self.system), self.q0, self.p0, jnp.asarray(start))
         return self.shared
 
     def __call__(self, i):
@@ -517,7 +464,6 @@ def cheapest(probe, target, start, max_runs=12, max_jump=8):
     return passes, f"search ended after {max_runs} runs"
 
 
-
 def run_system(system, solvers, cap_s):
     """Every solver at every level on ``system``: the cheapest run per level (found, not yet
     timed; ``time_cheapest`` times them)."""
@@ -603,7 +549,6 @@ def summarize(result):
     result["summary"] = summary
 
 
-
 def describe(run, kind_of):
     if run is None:
         return "none reached it"
@@ -652,7 +597,6 @@ def cell(kind, e):
     rejected = f" + {e['rejected']}" if e["rejected"] else ""
     return (f"{1e3 * e['run_s']:.3g} / {e['steps']}{rejected} / {e['evaluations']} "
             f"({knob_text(kind, e)}{its}, {1e6 * e['run_s'] / e['evaluations']:.2f} us/eval)")
-
 
 
 def main():
