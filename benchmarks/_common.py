@@ -54,15 +54,6 @@ def timed(fn, *args, repeat=5):
     return compile_s, best_time(call, *args, repeat=repeat)
 
 
-def chained_us(step, carry, calls=200, repeat=5):
-    """Microseconds per call of ``step`` (carry -> carry of the same shapes), from ``calls``
-    chained calls in one compiled loop (one program's launch spread over them), warmed up, the
-    best of ``repeat`` (``best_time``)."""
-    _, call = compiled(lambda c: jax.lax.fori_loop(0, calls, lambda _, c: step(c), c), carry)
-    jax.block_until_ready(call(carry))
-    return 1e6 * best_time(call, carry, repeat=repeat) / calls
-
-
 def _commit():
     """The git commit of the tree the benchmark ran on ("+" where it had uncommitted changes)."""
     here = pathlib.Path(__file__).parent
@@ -112,6 +103,13 @@ def write(name, results, markdown=None):
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps({"machine": record, **results}, indent=2))
     print(f"wrote {path}")
+
+
+def show(label, row, *keys):
+    """One progress line: ``label`` and ``row``'s ``keys`` (all, without them; numbers to three digits)."""
+    text = ", ".join(f"{k} {row[k]:.3g}" if isinstance(row[k], float) else f"{k} {row[k]}" for k in keys or row
+                     if row.get(k) is not None and not isinstance(row[k], (dict, list)))
+    print(f"  {label}: {text}", flush=True)
 
 
 def markdown_table(header, rows):

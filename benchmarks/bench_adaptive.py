@@ -26,7 +26,7 @@ import argparse
 import time
 import warnings
 
-from _common import RESULTS, best_time, compiled, energy_quarters, figure, write  # first: one BLAS thread, float64
+from _common import RESULTS, best_time, compiled, energy_quarters, figure, show, write  # first: one BLAS thread, float64
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -102,9 +102,7 @@ def pythagorean_problem(T=5.0):
                  dop853_1e14=float(np.max(np.abs(dop.y[:, -1] - ends[1]))),
                  q0_perturbed_1e14=float(np.max(np.abs(ends[2] - ends[1]))))
     check["resolution"] = 10 * max(check.values())
-    print(f"  Pythagorean reference: |TT(h) - TT(h/2)| = {check['tt_h_vs_h2']:.1e}, |DOP853 - TT| = "
-          f"{check['dop853_1e14']:.1e}, q0 + 1e-14: {check['q0_perturbed_1e14']:.1e}; "
-          f"resolution {check['resolution']:.1e}")
+    show("Pythagorean reference", check)
     return dict(H=three_body, q0=q0, p0=p0, T=T, z1=ends[1], reference=check, resolution=check["resolution"],
                 tt_h=(0.32, 0.16, 0.08, 0.04, 0.02))
 
@@ -179,9 +177,7 @@ def sweep(problems, quick):
                     rec["error"] = float(np.max(np.abs(np.asarray(z1) - prob["z1"])))
                     rec["run_s"] = best_time(call, *args, repeat=5, min_s=0.3, budget_s=2.0)
                 records.append(rec)
-                print(f"  {label:22s} {name:30s} knob {knob:7.0e}: status {rec['status']} steps {rec['steps']:6d} "
-                      f"rejected {rec['rejected']:4d} error {rec.get('error', np.nan):.2e} "
-                      f"run {1e3 * rec.get('run_s', np.nan):8.2f} ms (compile {compile_s:.1f} s)", flush=True)
+                show(f"{label}, {name}", rec, "knob", "status", "steps", "rejected", "error", "run_s", "compile_s")
     return records
 
 
@@ -236,9 +232,7 @@ def ratios(records, problems):
                        ratio_pid=min((c for n, c in ours.items() if "PID" in n), default=np.nan) / theirs[bp],
                        ratio_evaluations=min(side("evaluations", False).values())
                        / min(side("evaluations", True).values()))
-            print(f"  {label:22s} error {target:.0e}: ours {bo} {1e3 * ours[bo]:.2f} ms, peer {bp} "
-                  f"{1e3 * theirs[bp]:.2f} ms: ratio {row['ratio']:.2f} (best PID {row['ratio_pid']:.2f}; "
-                  f"evaluations {row['ratio_evaluations']:.2f})", flush=True)
+            show(f"{label}, error {target:.0e}", row)
     return table
 
 
@@ -349,9 +343,7 @@ def long_runs(orbits, quick, e=0.9):
             rec["max_energy_error_per_orbit"] = [float(np.max(per_orbit_max[i:i + block]))
                                                  for i in range(0, orbits, block)]
             curves[(kind, knob)] = per_orbit_max
-            print(f"  {kind:14s} knob {knob:7.0e}: status {rec['status']} steps {rec['steps']:8d} run {run_s:7.2f} s "
-                  f"max|dH| {rec['max_energy_error']:.2e} last/first quarter {rec['last_over_first']:.2f} "
-                  f"(compile {compile_s:.1f} s)", flush=True)
+            show(kind, rec)
     summary = []
     for rec in records:
         if not rec["kind"].startswith("TimeTransform"):
@@ -364,10 +356,7 @@ def long_runs(orbits, quick, e=0.9):
                             steps=rec["steps"], uniform_run_s=cost, uniform_steps=steps,
                             ratio=None if cost is None else rec["run_s"] / cost,
                             ratio_steps=None if steps is None else rec["steps"] / steps))
-        uniform = "not reached" if cost is None else (f"{cost:.2f} s, ratio {rec['run_s'] / cost:.3f}; "
-                                                      f"{steps:.0f} steps, ratio {rec['steps'] / steps:.3f}")
-        print(f"  {rec['kind']} h = {rec['knob']}: max|dH| {rec['max_energy_error']:.2e} in {rec['run_s']:.2f} s; "
-              f"uniform steps: {uniform}", flush=True)
+        show(f"{rec['kind']} h = {rec['knob']} against uniform steps", summary[-1])
     return dict(orbits=orbits, e=e, method="cG(4)+Gauss 4", runs=records, tt_vs_uniform=summary), curves
 
 

@@ -19,7 +19,7 @@ import argparse
 import re
 import time
 
-from _common import write  # first: one BLAS thread, float64
+from _common import show, write  # first: one BLAS thread, float64
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -65,23 +65,16 @@ def first_call(make, sized=True):
                 stablehlo_ops=ops, kernels=kernels)
 
 
-def kepler():
-    e, a = 0.6, 1.0
-    H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
-    q0 = np.array([a * (1 - e), 0.0])
-    p0 = np.array([0.0, np.sqrt((1 + e) / (a * (1 - e)))])
-    return H, q0, p0, 2 * np.pi, gj.CG(6, gj.gauss_legendre(6)), 1e-10
-
-
-def fput():
-    scene = scenes.fput(64)
-    return scene.H, scene.q0, scene.p0, 10.0, gj.CG(4, gj.gauss_legendre(4)), 1e-8
+PROBLEMS = {  # (scene, span, method, tolerance)
+    "kepler": lambda: (scenes.kepler(0.6), 2 * np.pi, gj.CG(6, gj.gauss_legendre(6)), 1e-10),
+    "fput": lambda: (scenes.fput(64), 10.0, gj.CG(4, gj.gauss_legendre(4)), 1e-8),
+}
 
 
 def ours(problem):
     """``{kind: make}``: the library's entry points on ``problem``."""
-    H, q0, p0, T, method, tol = problem
-    q0, p0 = jnp.asarray(q0), jnp.asarray(p0)
+    scene, T, method, tol = problem
+    H, q0, p0 = scene.H, jnp.asarray(scene.q0), jnp.asarray(scene.p0)
     n = 1000
     h = T / n
     pid = lambda: gj.PIDController(rtol=tol, atol=tol)
@@ -119,8 +112,8 @@ def peers(problem):
     """``{kind: {peer: make}}``: diffrax's equivalents (the same H, state and span)."""
     import diffrax
 
-    H, q0, p0, T, _, tol = problem
-    n = 1000
+    scene, T, _, tol = problem
+    H, q0, p0, n = scene.H, jnp.asarray(scene.q0), jnp.asarray(scene.p0), 1000
     dH = jax.grad(H, argnums=(0, 1))
     term = diffrax.ODETerm(lambda t, y, args: (dH(*y)[1], -dH(*y)[0]))
     ts = jnp.linspace(0.0, T, 21)
@@ -131,7 +124,7 @@ def peers(problem):
                                                   max_steps=4096, **kw)
 
     def made(fn, *args):
-        return lambda: (fn, args or (jnp.asarray(q0), jnp.asarray(p0)))
+        return lambda: (fn, args or (q0, p0))
 
     def step(solver):
         def one(q0, p0):
@@ -154,7 +147,7 @@ def peers(problem):
         "integrate PID": {"Dopri8": made(solve(dopri8, True)), "Tsit5": made(solve(tsit5, True))},
         "integrate save_at + events": {"Dopri8": made(solve(dopri8, True, saveat=diffrax.SaveAt(ts=ts), event=event))},
         "integrate dense": {"Dopri8": made(solve(dopri8, False, saveat=diffrax.SaveAt(dense=True)))},
-        "sweep": {"Dopri8": made(vsolve, jnp.stack([jnp.asarray(q0)] * 4), jnp.stack([jnp.asarray(p0)] * 4))},
+        "sweep": {"Dopri8": made(vsolve, jnp.stack([q0] * 4), jnp.stack([p0] * 4))},
         "grad fixed": {"Dopri8": made(grad(dopri8, False))},
         "grad PID": {"Dopri8": made(grad(dopri8, True)), "Tsit5": made(grad(tsit5, True))},
     }
@@ -177,27 +170,19 @@ def problem_part(name, problem, kinds=None):
             dopri8 = row["diffrax Dopri8"]
             row["ratio_to_dopri8"] = mine / (dopri8["trace_and_lower"] + dopri8["compile"])
         rows[kind] = row
-        peer_text = "  ".join(f"{k[8:]} {v['trace_and_lower'] + v['compile']:.2f} s" for k, v in row.items()
-                              if k.startswith("diffrax"))
-        ratio = f"  ratio {row['ratio_to_dopri8']:.2f}" if "ratio_to_dopri8" in row else ""
-        size = row["galerkin_jax"]
-        print(f"{name:7s} {kind:28s} trace+lower {mine - size['compile']:5.2f} s  compile {size['compile']:5.2f} s  "
-              f"ops {size['stablehlo_ops']}  kernels {size['kernels']}  | {peer_text}{ratio}", flush=True)
+        show(f"{name} {kind}", row["galerkin_jax"] | {f"{k} compile": v["trace_and_lower"] + v["compile"]
+                                                     for k, v in row.items() if k.startswith("diffrax")}
+             | {"ratio_to_dopri8": row.get("ratio_to_dopri8")})
     return rows
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--only", nargs="+", choices=("kepler", "fput"), default=["kepler", "fput"])
+    parser.add_argument("--only", nargs="+", choices=list(PROBLEMS), default=list(PROBLEMS))
     parser.add_argument("--kinds", nargs="*", help="run kinds to measure (default: all), e.g. 'integrate PID'")
     parser.add_argument("--name", default="compile")
     options = parser.parse_args()
-    results = {}
-    if "kepler" in options.only:
-        results["kepler"] = problem_part("kepler", kepler(), options.kinds)
-    if "fput" in options.only:
-        results["fput"] = problem_part("fput", fput(), options.kinds)
-    write(options.name, results)
+    write(options.name, {name: problem_part(name, PROBLEMS[name](), options.kinds) for name in options.only})
 
 
 if __name__ == "__main__":

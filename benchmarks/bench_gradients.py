@@ -25,7 +25,7 @@ import subprocess
 import sys
 import textwrap
 
-from _common import best_time, compiled, timed, write  # first: one BLAS thread, float64
+from _common import best_time, compiled, show, timed, write  # first: one BLAS thread, float64
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -98,10 +98,8 @@ def max_steps_part():
                              forward_peak_mb=peak_memory(case, max_steps, gradient=False))
             row[name]["gradient_over_forward"] = row[name]["gradient_s"] / row[name]["forward_s"]
         rows.append(row)
-        ours, theirs = row["galerkin_jax"], row["diffrax Tsit5"]
-        print(f"max_steps {max_steps:8d}: ours gradient {1e3 * ours['gradient_s']:7.2f} ms ({ours['gradient_temp_mb']:6.2f} "
-              f"MB temp, peak {ours['peak_mb']:5.0f} MB), Tsit5 {1e3 * theirs['gradient_s']:7.2f} ms "
-              f"({theirs['gradient_temp_mb']:6.2f} MB, peak {theirs['peak_mb']:5.0f} MB)", flush=True)
+        for name in ("galerkin_jax", "diffrax Tsit5"):
+            show(f"max_steps {max_steps}, {name}", row[name])
     first, last = rows[1]["galerkin_jax"], rows[-1]["galerkin_jax"]
     return dict(scene="beta-FPUT, 6 masses, cG(4) + Gauss 4, PID 1e-6, T = 10", rows=rows,
                 gradient_time_1e6_over_4096=last["gradient_s"] / first["gradient_s"],
@@ -111,10 +109,9 @@ def max_steps_part():
 
 
 def kepler():
-    e = 0.9
-    H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
-    q0, p0 = jnp.array([1 - e, 0.0]), jnp.array([0.0, np.sqrt((1 + e) / (1 - e))])
-    return "Kepler e = 0.9, one orbit, cG(6) + Gauss 7", H, q0, p0, 2 * np.pi, gj.CG(6, gj.gauss_legendre(7)), 1e-8
+    scene = scenes.kepler(0.9)
+    return ("Kepler e = 0.9, one orbit, cG(6) + Gauss 7", scene.H, jnp.asarray(scene.q0), jnp.asarray(scene.p0),
+            2 * np.pi, gj.CG(6, gj.gauss_legendre(7)), 1e-8)
 
 
 def fput_large():
@@ -160,13 +157,9 @@ def peers_part():
         best = dopri8[-1]  # the loosest tolerance whose error is at most ours (or the tightest tried)
         results[label] = dict(galerkin_jax=ours, dopri8=dopri8, dopri8_at_same_error=best,
                               gradient_ratio_to_dopri8=ours["gradient_s"] / best["gradient_s"])
-        print(f"{label}: ours {ours['steps']} steps, error {ours['final_error']:.1e}, forward "
-              f"{1e3 * ours['forward_s']:.2f} ms, gradient {1e3 * ours['gradient_s']:.2f} ms "
-              f"({ours['gradient_over_forward']:.2f}x; at max_steps 4096 "
-              f"{ours['gradient_default_max_steps_over_forward']:.2f}x, with checkpoint=True "
-              f"{ours['gradient_checkpoint_over_forward']:.2f}x); Dopri8 at tol {best['tol']:g} (error "
-              f"{best['final_error']:.1e}) gradient {1e3 * best['gradient_s']:.2f} ms: ratio "
-              f"{results[label]['gradient_ratio_to_dopri8']:.2f}", flush=True)
+        show(label, ours)
+        show(f"{label}, Dopri8 at the same error", results[label] | best, "tol", "final_error", "gradient_s",
+             "gradient_ratio_to_dopri8")
     return results
 
 
@@ -184,9 +177,7 @@ def long_part():
     gradient_s, gradient_temp_mb = gradient_figures(lambda q0: jnp.sum(run(q0).q[-1] ** 2), q0, repeat=1)
     out.update(scene=label + ", PID 1e-6", span=span, steps=int(run(q0).stats["num_accepted_steps"]),
                gradient_s=gradient_s, gradient_temp_mb=gradient_temp_mb)
-    steps = out["steps"]
-    print(f"long: {steps} steps, gradient {out['gradient_s']:.1f} s, {out['gradient_temp_mb']:.1f} MB temp; at max_steps "
-          f"10^6 {out['gradient_temp_mb_at_max_steps_1000000']:.1f} MB", flush=True)
+    show("long", out)
     return out
 
 
@@ -194,12 +185,10 @@ def fixed_part():
     """Gradients through fixed steps, d/dq0 of |q_N|^2 + |p_N|^2: compile and run time of the
     forward run and of the gradient, and the gradient itself (a later tree must keep its digits;
     two trees compare by their result files, each records its commit)."""
-    kepler_H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
-    q0, p0, chain = jnp.array([0.5, 0.0]), jnp.array([0.0, 3.0**0.5]), scenes.fput(64)
-    cases = {"kepler": (kepler_H, q0, p0, gj.CG(6, gj.gauss_legendre(6)), 2 * np.pi / 126, 126, {}),
-             "kepler_checkpoint": (kepler_H, q0, p0, gj.CG(2, gj.gauss_legendre(3)), 0.01, 2000, dict(checkpoint=True)),
-             "fput64": (chain.H, jnp.asarray(chain.q0), jnp.asarray(chain.p0), gj.CG(4, gj.gauss_legendre(4)), 0.035,
-                        286, {})}
+    kepler, chain = ((s.H, jnp.asarray(s.q0), jnp.asarray(s.p0)) for s in (scenes.kepler(0.5), scenes.fput(64)))
+    cases = {"kepler": (*kepler, gj.CG(6, gj.gauss_legendre(6)), 2 * np.pi / 126, 126, {}),
+             "kepler_checkpoint": (*kepler, gj.CG(2, gj.gauss_legendre(3)), 0.01, 2000, dict(checkpoint=True)),
+             "fput64": (*chain, gj.CG(4, gj.gauss_legendre(4)), 0.035, 286, {})}
     results = {}
     for case, (H, q0, p0, method, h, n, extra) in cases.items():
         def loss(q0):
@@ -210,8 +199,7 @@ def fixed_part():
         for name, f in (("forward", loss), ("gradient", jax.grad(loss))):
             row[name + "_compile_s"], row[name + "_s"] = timed(f, q0, repeat=20)
         row["gradient"] = np.asarray(jax.grad(loss)(q0)).tolist()
-        print(f"{case:18s} forward {1e3 * row['forward_s']:8.3f} ms (compile {row['forward_compile_s']:5.1f} s), "
-              f"gradient {1e3 * row['gradient_s']:8.3f} ms (compile {row['gradient_compile_s']:5.1f} s)", flush=True)
+        show(case, row)
     return results
 
 
@@ -245,7 +233,7 @@ def members_part(tolerances=tuple(10.0 ** -np.arange(4, 12))):
             tangent = timed(lambda x: jax.jvp(lambda x: loss(x, batch_size), (x,), (jnp.ones_like(x),))[1], q0s)
             case[key] = dict(forward_compile_s=forward[0], forward_s=forward[1], gradient_compile_s=gradient[0],
                              gradient_s=gradient[1], tangent_compile_s=tangent[0], tangent_s=tangent[1])
-        print(label, json.dumps(case), flush=True)
+        show(label, case)
         results[label] = case
     return results
 

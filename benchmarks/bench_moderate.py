@@ -39,7 +39,7 @@ import math
 import time
 from typing import Callable, NamedTuple
 
-from _common import best_time, compiled, machine, markdown_table, write  # first: one BLAS thread, float64
+from _common import best_time, compiled, machine, markdown_table, show, write  # first: one BLAS thread, float64
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -313,11 +313,11 @@ def solver_list(quick):
         Solver("midpoint triple jump (order 4)", False, "steps", 4, midpoint(peers.TRIPLE_JUMP), 0.5,
                applies=lambda system: not separable(system)),
     ]
-    explicit = [Solver(label, True, "steps", order, explicit(method, forces, search=True), start, applies=separable,
+    elements = [Solver(label, True, "steps", order, explicit(method, forces, search=True), start, applies=separable,
                        final=explicit(method, forces)) for label, method, order, forces, start in EXPLICIT]
     if quick:
-        return [cg[1], pid[1]] + explicit + named_peers
-    return cg + pid + loose + explicit + named_peers
+        return [cg[1], pid[1]] + elements + named_peers
+    return cg + pid + loose + elements + named_peers
 
 
 SCALE_STEP = 0.05  # h0 of ``Solver.start``: a step that resolves every system's motion
@@ -369,7 +369,7 @@ class Probe:
         if i not in self.records:
             compile_s, call = self.searching()
             self.records[i] = self.record(i, lambda q0, p0: call(q0, p0, jnp.asarray(knob_value(self.solver, i))),
-                                          compile_s, show=len(self.records) == 0)
+                                          compile_s, first=len(self.records) == 0)
         return self.records[i]
 
     def final(self, i):
@@ -378,10 +378,12 @@ class Probe:
             return self(i)
         if i not in self.finals:
             compile_s, call = self.call(i)
-            self.finals[i] = dict(self.record(i, call, compile_s, show=True), final=True)
+            self.finals[i] = dict(self.record(i, call, compile_s, first=True), final=True)
         return self.finals[i]
 
-    def record(self, i, call, compile_s, show):
+    def record(self, i, call, compile_s, first):
+        """Run index i once (timed: first_s) and record its error and counts; print them (with the
+        compile time on a ``first`` run)."""
         t0 = time.perf_counter()
         out = jax.block_until_ready(call(self.q0, self.p0))
         first_s = time.perf_counter() - t0
@@ -390,9 +392,7 @@ class Probe:
                  error=error if math.isfinite(error) else math.inf, steps=int(out.steps), rejected=int(out.rejected),
                  evaluations=int(out.evaluations), iterations=int(out.iterations), compile_s=compile_s,
                  first_s=first_s)
-        print(f"    {self.solver.name:32s} knob {r['knob']:<10.4g} error {r['error']:.2e} steps {r['steps']:7d} "
-              f"rejected {r['rejected']:5d} status {r['status']} run {first_s:7.3f} s"
-              + (f" (compile {compile_s:.1f} s)" if show else ""), flush=True)
+        show(self.solver.name, r, *(() if first else ("knob", "error", "steps", "rejected", "status", "first_s")))
         return r
 
     def error(self, out):
@@ -495,11 +495,11 @@ def choose_finals(result, probes):
     search's while loop costs 1.4-1.8x the timed scan, alike for every k). The others keep the
     search's run, marked ``search_only``, and do not enter the comparison. The explicit elements
     (``EXPLICIT``, whose stand-in is another loop) are all timed."""
-    explicit = {label for label, *_ in EXPLICIT}
+    elements = {label for label, *_ in EXPLICIT}
     for level in (f"{x:.0e}" for x in LEVELS):
         entries = {name: r["levels"][level] for name, r in result["solvers"].items()
                    if probes[name].solver.final is not None and r["levels"][level]["index"] is not None
-                   and name not in explicit}
+                   and name not in elements}
         if not entries:
             continue
         first = {name: probes[name](e["index"])["first_s"] for name, e in entries.items()}

@@ -21,7 +21,7 @@ results/peers_work_precision.png; ``--quick`` and ``--only`` add a suffix unless
 import argparse
 import warnings
 
-from _common import RESULTS, best_time, compiled, figure, machine, markdown_table, write  # first: one BLAS thread, float64
+from _common import RESULTS, best_time, compiled, figure, machine, markdown_table, show, write  # first: one BLAS thread, float64
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -141,13 +141,6 @@ def fixed_run(solver, H, z0, h, n, quick):
     return row, z1, retime
 
 
-def show(row, **extra):
-    knob = f"tol {row['tol']:.0e}" if "tol" in row else f"n {row['n_steps']}"
-    run = f"run {row['run_s']:.4f} s" if row["ok"] else f"FAILED (status {row['status']})"
-    numbers = " ".join(f"{k} {v:.2e}" for k, v in extra.items() if v is not None)
-    print(f"  {row['solver']:<30} {knob:<10} compile {row['compile_s']:5.2f} s  {run}  {numbers}", flush=True)
-
-
 def work_precision(scene, T, reference, scale, knobs, quick):
     """Every solver over its knobs: run time and final error ``max|z1 - reference| / scale``."""
     z0, rows, retimes = state(scene), [], []
@@ -159,7 +152,7 @@ def work_precision(scene, T, reference, scale, knobs, quick):
             else:
                 row, z1, retime = fixed_run(solver, scene.H, z0, T / knob, knob, quick)
             row["error"] = float(np.max(np.abs(z1 - reference)) / scale) if row["ok"] else None
-            show(row, error=row["error"])
+            show(row["solver"], row)
             rows.append(row)
             retimes.append(retime)
     # a second pass, minutes after the first: a machine's speed drifts for seconds at a time,
@@ -224,7 +217,7 @@ def fput_part(quick):
         print(f"FPUT N = {N}, h = {scene.h:g}: microseconds per step", flush=True)
         rows = {s: calibrated_run(s, scene.H, state(scene), scene.h, 0.5, quick) for s in solvers}
         for row in rows.values():
-            show(row, us_per_step=row["us_per_step"], energy_error=row["energy_error"])
+            show(row["solver"], row)
         result[str(N)] = rows
     result["growth_512_over_64"] = {
         s: ratio(result["512"][s]["us_per_step"], result["64"][s]["us_per_step"]) for s in solvers
@@ -261,7 +254,7 @@ def batch_part(quick, size=256, h=0.01, n=1000):
         row.update(solver=name, members=size, n_steps=n, h=h)
         row["us_per_member_step"] = 1e6 * row["run_s"] / (size * n) if row["ok"] else None
         row["error"] = float(np.max(np.abs(z1 - exact)))
-        show(row, us_per_member_step=row["us_per_member_step"], error=row["error"])
+        show(row["solver"], row)
         rows[name] = row
     return rows
 
@@ -275,7 +268,7 @@ def long_part(quick, h=0.01):
     for solver in ("cG(3)+Gauss 3", "cG(1)+midpoint", "Gauss RK s=3", "diffrax Dopri8", "leapfrog"):
         row, z1, _ = fixed_run(solver, scene.H, state(scene), h, n, quick)
         row["error"] = float(np.max(np.abs(z1 - exact)))
-        show(row, us_per_step=row["us_per_step"], energy_error=row["energy_error"], error=row["error"])
+        show(row["solver"], row)
         rows[solver] = row
     return rows
 
@@ -303,7 +296,7 @@ def explicit_part(quick, n=10_000, rounds=30):
                            **{f"{name}_compile_s": calls[name][0] for name in calls},
                            ratio=best["galerkin_jax"] / best["leapfrog"],
                            max_difference=float(np.max(np.abs(ends["galerkin_jax"] - ends["leapfrog"]))))
-        print(f"  {label}: " + ", ".join(f"{k} {v:.3g}" for k, v in rows[label].items()), flush=True)
+        show(label, rows[label])
     return rows
 
 
