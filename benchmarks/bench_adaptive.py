@@ -26,7 +26,7 @@ import argparse
 import time
 import warnings
 
-from _common import RESULTS, best_time, compiled, energy_quarters, figure, show, write  # first: one BLAS thread, float64
+from _common import RESULTS, best_time, compiled, energy_quarters, figure, show, write  # first: one BLAS thread
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -159,14 +159,12 @@ def sweep(problems, quick):
     """Every solver on every problem: one compilation per solver and problem family."""
     records = []
     for name, (make, knobs) in solvers(quick).items():
-        family_calls = {}
+        family_calls = {}  # by H: both Kepler problems share one program
         for label, prob in problems.items():
-            run = make(prob["H"])
-            args0 = (prob["q0"], prob["p0"], jnp.asarray(prob["T"]), jnp.asarray(1e-8))
-            key = id(prob["H"])
-            if key not in family_calls:
-                family_calls[key] = compiled(run, *args0)
-            compile_s, call = family_calls[key]
+            if id(prob["H"]) not in family_calls:
+                args = (prob["q0"], prob["p0"], jnp.asarray(prob["T"]), jnp.asarray(1e-8))
+                family_calls[id(prob["H"])] = compiled(make(prob["H"]), *args)
+            compile_s, call = family_calls[id(prob["H"])]
             for knob in prob[knobs] if isinstance(knobs, str) else knobs:
                 args = (prob["q0"], prob["p0"], jnp.asarray(prob["T"]), jnp.asarray(knob))
                 z1, status, steps, rejected, newton = call(*args)
@@ -195,16 +193,12 @@ def cost_at(points, target, key="run_s"):
     interpolation between the two neighbours that bracket it, the cheapest such crossing; None
     where the curve never reaches the target."""
     pts = [(p["error"], p[key]) for p in points if "error" in p]
-    best = None
+    costs = [c for e, c in pts if e <= target]  # the points that reach it, and the crossings
     for (e_a, c_a), (e_b, c_b) in zip(pts, pts[1:]):
         if min(e_a, e_b) <= target <= max(e_a, e_b) and e_a != e_b:
             w = (np.log(target) - np.log(e_a)) / (np.log(e_b) - np.log(e_a))
-            c = float(np.exp(np.log(c_a) + w * (np.log(c_b) - np.log(c_a))))
-            best = c if best is None else min(best, c)
-    reached = [c for e, c in pts if e <= target]
-    if reached:
-        best = min(reached) if best is None else min(best, min(reached))
-    return best
+            costs.append(float(np.exp(np.log(c_a) + w * (np.log(c_b) - np.log(c_a)))))
+    return min(costs, default=None)
 
 
 def ratios(records, problems):
@@ -232,7 +226,7 @@ def ratios(records, problems):
                        ratio_pid=min((c for n, c in ours.items() if "PID" in n), default=np.nan) / theirs[bp],
                        ratio_evaluations=min(side("evaluations", False).values())
                        / min(side("evaluations", True).values()))
-            show(f"{label}, error {target:.0e}", row)
+            show(f"{label}, error {target:.0e}", row, "best_ours", "best_peer", "ratio", "ratio_pid", "ratio_evaluations")
     return table
 
 
@@ -268,24 +262,22 @@ def energy_run(kind, method, H, q0, p0, T, max_steps):
     PIDController (knob: tol) or uniform steps (knob: h; fixed steps, every state saved: the
     run a user makes to watch the energy)."""
 
-    def uniform(knob, q0, p0):
-        n = int(np.ceil(T / knob))
-        sol = gj.integrate(H, q0, p0, method=method, h=knob, n_steps=n, error_estimate=False)
-        return (jax.vmap(H)(sol.q, sol.p) - H(q0, p0), sol.t, sol.stats["num_accepted_steps"], sol.status,
+    def energies(sol, q, p, t):
+        return (jax.vmap(H)(q, p) - H(q0, p0), t, sol.stats["num_accepted_steps"], sol.status,
                 sol.stats["num_newton_iterations"])
 
     def run(knob):
         if kind == "uniform":
-            return lambda q0, p0: uniform(knob, q0, p0)
+            def uniform(q0, p0):
+                sol = gj.integrate(H, q0, p0, method=method, h=knob, n_steps=int(np.ceil(T / knob)), error_estimate=False)
+                return energies(sol, sol.q, sol.p, sol.t)
+            return uniform
         if kind.startswith("TimeTransform"):
-            s = kepler_density(q0) if kind.endswith("r^1.5") else None
-            kw = dict(h=knob, controller=gj.TimeTransform(s))
+            kw = dict(h=knob, controller=gj.TimeTransform(kepler_density(q0) if kind.endswith("r^1.5") else None))
         else:
             kw = dict(h=1e-2, controller=gj.PIDController(knob, knob))
         sol = gj.integrate(H, q0, p0, method=method, t1=T, max_steps=max_steps, dense=True, error_estimate=False, **kw)
-        q, p = sol.dense.view(sol.dense.z)
-        H0 = H(q0, p0)
-        return jax.vmap(H)(q, p) - H0, sol.dense.t, sol.stats["num_accepted_steps"], sol.status, sol.stats["num_newton_iterations"]
+        return energies(sol, *sol.dense.view(sol.dense.z), sol.dense.t)
 
     return run
 

@@ -19,7 +19,7 @@ import argparse
 import re
 import time
 
-from _common import show, write  # first: one BLAS thread, float64
+from _common import best_time, show, write  # first: one BLAS thread
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -54,12 +54,7 @@ def first_call(make, sized=True):
     jax.block_until_ready(fn(*args))
     total = time.perf_counter() - t0
     compile_s = sum(_durations)
-    runs = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        runs.append(time.perf_counter() - t0)
-    run = min(runs)
+    run = best_time(fn, *args, repeat=3, min_s=0.0)
     ops, kernels = program_size(fn, *args) if sized else (None, None)
     return dict(total=total, trace_and_lower=max(total - compile_s - run, 0.0), compile=compile_s, run=run,
                 stablehlo_ops=ops, kernels=kernels)

@@ -25,7 +25,7 @@ import subprocess
 import sys
 import textwrap
 
-from _common import best_time, compiled, show, timed, write  # first: one BLAS thread, float64
+from _common import best_time, compiled, show, timed, write  # first: one BLAS thread
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -59,13 +59,9 @@ def peak_memory(case, max_steps, gradient=True):
 
 def fput_small(max_steps):
     scene = scenes.fput(6)
-    p0 = jnp.asarray(scene.p0)
-
-    def loss(q0):
-        sol = gj.integrate(scene.H, q0, p0, method=gj.CG(4, gj.gauss_legendre(4)), h=0.05, t1=10.0,
-                           controller=gj.PIDController(1e-6, 1e-6), max_steps=max_steps)
-        return jnp.sum(sol.q[-1] ** 2)
-
+    loss = lambda q0: jnp.sum(gj.integrate(scene.H, q0, jnp.asarray(scene.p0), method=gj.CG(4, gj.gauss_legendre(4)),
+                                           h=0.05, t1=10.0, controller=gj.PIDController(1e-6, 1e-6),
+                                           max_steps=max_steps).q[-1] ** 2)
     return loss, jnp.asarray(scene.q0)
 
 
@@ -132,14 +128,11 @@ def peers_part():
         error = float(np.max(np.abs(final.q[-1] - reference)))
         loss = lambda q0, **kwargs: jnp.sum(run(q0, tol, **kwargs).q[-1] ** 2)
         ours = dict(steps=int(final.stats["num_accepted_steps"]), final_error=error,
-                    forward_s=timed(lambda q0: run(q0, tol).q[-1], q0, repeat=20)[1],
-                    gradient_s=timed(jax.grad(loss), q0, repeat=20)[1],
-                    # the default max_steps (4096), and the fewest roots kept (``checkpoint=True``)
-                    gradient_default_max_steps_s=timed(jax.grad(lambda q0: loss(q0, max_steps=4096)), q0,
-                                                       repeat=20)[1],
-                    gradient_checkpoint_s=timed(jax.grad(lambda q0: loss(q0, max_steps=4096, checkpoint=True)), q0,
-                                                repeat=20)[1])
-        for key in ("gradient", "gradient_default_max_steps", "gradient_checkpoint"):
+                    forward_s=timed(lambda q0: run(q0, tol).q[-1], q0, repeat=20)[1])
+        # also at the default max_steps (4096), and with the fewest roots kept (``checkpoint=True``)
+        for key, kw in (("gradient", {}), ("gradient_default_max_steps", dict(max_steps=4096)),
+                        ("gradient_checkpoint", dict(max_steps=4096, checkpoint=True))):
+            ours[key + "_s"] = timed(jax.grad(lambda q0: loss(q0, **kw)), q0, repeat=20)[1]
             ours[key + "_over_forward"] = ours[key + "_s"] / ours["forward_s"]
         dopri8 = []
         for peer_tol in tol * 10.0 ** -np.arange(7):
@@ -228,11 +221,11 @@ def members_part(tolerances=tuple(10.0 ** -np.arange(4, 12))):
         case["alone_gradient_sum_s"] = sum(case["alone_gradient_s"])
         for batch_size in (None, 1, 4):
             key = "vmap" if batch_size is None else f"batch_size_{batch_size}"
-            forward = timed(lambda x: loss(x, batch_size), q0s)
-            gradient = timed(jax.grad(lambda x: loss(x, batch_size)), q0s)
-            tangent = timed(lambda x: jax.jvp(lambda x: loss(x, batch_size), (x,), (jnp.ones_like(x),))[1], q0s)
-            case[key] = dict(forward_compile_s=forward[0], forward_s=forward[1], gradient_compile_s=gradient[0],
-                             gradient_s=gradient[1], tangent_compile_s=tangent[0], tangent_s=tangent[1])
+            f = lambda x: loss(x, batch_size)
+            case[key] = {}
+            for what, fn in (("forward", f), ("gradient", jax.grad(f)),
+                             ("tangent", lambda x: jax.jvp(f, (x,), (jnp.ones_like(x),))[1])):
+                case[key][what + "_compile_s"], case[key][what + "_s"] = timed(fn, q0s)
         show(label, case)
         results[label] = case
     return results

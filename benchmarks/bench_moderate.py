@@ -39,7 +39,7 @@ import math
 import time
 from typing import Callable, NamedTuple
 
-from _common import best_time, compiled, machine, markdown_table, show, write  # first: one BLAS thread, float64
+from _common import best_time, compiled, machine, markdown_table, show, write  # first: one BLAS thread
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -57,21 +57,11 @@ MAX_STEPS = 200_000  # a controlled segment's attempts
 
 def system_list(quick):
     """The systems of a full run (name -> factory), or of ``--quick``: smaller, shorter."""
-    if quick:
-        return {
-            "LJ13": lambda: systems.lennard_jones(13, T=5.0),
-            "Morse13": lambda: systems.morse(13, T=5.0),
-            "Plummer16": lambda: systems.plummer(16, T=2.0),
-            "Chain5": lambda: systems.pendulum_chain(5, T=5.0),
-        }
-    return {
-        "LJ13": lambda: systems.lennard_jones(13, T=50.0),
-        "LJ55": lambda: systems.lennard_jones(55, T=10.0),
-        "Morse13": lambda: systems.morse(13, T=50.0),
-        "Morse55": lambda: systems.morse(55, T=10.0),
-        "Plummer32": lambda: systems.plummer(32, T=10.0),
-        "Chain10": lambda: systems.pendulum_chain(10, T=20.0),
-    }
+    lj, morse, plummer, chain = ((systems.lennard_jones, "LJ"), (systems.morse, "Morse"), (systems.plummer, "Plummer"),
+                                 (systems.pendulum_chain, "Chain"))
+    chosen = ([(lj, 13, 5.0), (morse, 13, 5.0), (plummer, 16, 2.0), (chain, 5, 5.0)] if quick else [
+        (lj, 13, 50.0), (lj, 55, 10.0), (morse, 13, 50.0), (morse, 55, 10.0), (plummer, 32, 10.0), (chain, 10, 20.0)])
+    return {f"{name}{n}": functools.partial(f, n, T=T) for (f, name), n, T in chosen}
 
 
 class Out(NamedTuple):
@@ -531,22 +521,16 @@ def time_cheapest(result, probes, repeat, budget_s):
 
 
 def summarize(result):
-    """Per level: the best galerkin_jax run, the best peer, the ratio of their run times."""
-    summary = {}
+    """Per level: the best galerkin_jax run, the best peer, the ratios of their run times and
+    field evaluations."""
+    result["summary"] = {}
     for level in (f"{x:.0e}" for x in LEVELS):
-        best = {}
-        for side in (True, False):
-            candidates = [(name, r["levels"][level]) for name, r in result["solvers"].items()
-                          if r["ours"] == side and r["levels"][level].get("run_s") is not None]
-            best[side] = min(candidates, key=lambda c: c[1]["run_s"], default=None)
-        ours, peer = best[True], best[False]
-        summary[level] = dict(
-            ours=None if ours is None else dict(solver=ours[0], **ours[1]),
-            peer=None if peer is None else dict(solver=peer[0], **peer[1]),
-            ratio=ours[1]["run_s"] / peer[1]["run_s"] if ours and peer else None,
-            evaluations_ratio=ours[1]["evaluations"] / peer[1]["evaluations"] if ours and peer else None,
-        )
-    result["summary"] = summary
+        ours, peer = (min((dict(solver=name, **r["levels"][level]) for name, r in result["solvers"].items()
+                           if r["ours"] == side and r["levels"][level].get("run_s") is not None),
+                          key=lambda c: c["run_s"], default=None) for side in (True, False))
+        both = ours is not None and peer is not None
+        result["summary"][level] = dict(ours=ours, peer=peer, ratio=ours["run_s"] / peer["run_s"] if both else None,
+                                        evaluations_ratio=ours["evaluations"] / peer["evaluations"] if both else None)
 
 
 def describe(run, kind_of):
@@ -579,7 +563,7 @@ def summary_table(results):
 
 
 def detail_table(name, result):
-    rows = [[solver, *(cell(r["kind"], r["levels"][f"{x:.0e}"]) for x in LEVELS)] for solver, r in result["solvers"].items()]
+    rows = [[s, *(cell(r["kind"], r["levels"][f"{x:.0e}"]) for x in LEVELS)] for s, r in result["solvers"].items()]
     header = ["solver"] + [f"{x:.0e}: ms / steps (+ rejected) / field evaluations" for x in LEVELS]
     return f"{name}: {result['description']}; d = {result['d']}, H0 = {result['H0']:.6g}\n\n" + markdown_table(header, rows)
 

@@ -21,7 +21,7 @@ results/peers_work_precision.png; ``--quick`` and ``--only`` add a suffix unless
 import argparse
 import warnings
 
-from _common import RESULTS, best_time, compiled, figure, machine, markdown_table, show, write  # first: one BLAS thread, float64
+from _common import RESULTS, best_time, compiled, figure, machine, markdown_table, show, write  # first: one BLAS thread
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -103,18 +103,10 @@ def state(scene):
     return jnp.concatenate([jnp.asarray(scene.q0), jnp.asarray(scene.p0)])
 
 
-def energy(H, z):
-    return float(H(*np.split(np.asarray(z), 2)))
-
-
 def measure(run, z0, quick):
-    """Compile (JAX) or warm up (SciPy) ``run``, call it, and time it only if it succeeded.
-
-    Returns:
-        ``(row, z1, retime)``: row has compile_s, run_s (None when failed), status (the
-        largest code), failed (members with a nonzero status) and ok; z1 is the final state
-        (NumPy); ``retime()`` times the compiled run again.
-    """
+    """Compile (JAX) or warm up (SciPy) ``run``, call it, and time it only if it succeeded:
+    ``(row, z1, retime)``, row with compile_s, run_s (None when failed), status (the largest
+    code), failed (members with a nonzero status) and ok; ``retime()`` times it again."""
     compile_s, call = (0.0, run) if getattr(run, "is_python", False) else compiled(run, z0)
     z1, status = call(z0)
     status = np.asarray(status)
@@ -125,18 +117,12 @@ def measure(run, z0, quick):
     return row, np.asarray(z1), retime
 
 
-def per_step(row):
-    """Sets ``row``'s us_per_step from its run_s and n_steps."""
-    row["us_per_step"] = 1e6 * row["run_s"] / row["n_steps"] if row["ok"] else None
-
-
 def fixed_run(solver, H, z0, h, n, quick):
     """One fixed-step run of ``n`` steps of ``h``: the measured row with the per-step time and
     the relative energy change at the end (batched ``z0``: the largest over members)."""
     row, z1, retime = measure(SOLVERS[solver](H, n * h, n), z0, quick)
-    row.update(solver=solver, n_steps=n, h=h)
-    per_step(row)
-    H0, H1 = (np.array([energy(H, x) for x in np.atleast_2d(z)]) for z in (z0, z1))
+    row.update(solver=solver, n_steps=n, h=h, us_per_step=1e6 * row["run_s"] / n if row["ok"] else None)
+    H0, H1 = (np.array([float(H(*np.split(np.asarray(x), 2))) for x in np.atleast_2d(z)]) for z in (z0, z1))
     row["energy_error"] = float(np.max(np.abs(H1 - H0) / np.abs(H0)))
     return row, z1, retime
 
@@ -161,7 +147,7 @@ def work_precision(scene, T, reference, scale, knobs, quick):
         if row["ok"]:
             row["run_s"] = min(row["run_s"], retime())
             if "n_steps" in row:
-                per_step(row)
+                row["us_per_step"] = 1e6 * row["run_s"] / row["n_steps"]
     return {"T": T, "runs": rows, "cheapest": {e: cheapest(rows, float(e)) for e in THRESHOLDS}}
 
 
@@ -324,11 +310,11 @@ def table(results):
     if "fput" in results:
         us = {s: row["us_per_step"] for s, row in results["fput"]["64"].items()}
         growth = results["fput"]["growth_512_over_64"]
-        rows += [["beta-FPUT chain, N = 64 (state 128), h = 0.05: µs per step", pair(us, "cG(3)+Gauss 3", "cG(1)+midpoint"),
-                  pair(us, "diffrax Tsit5", "leapfrog"), f"{x(us['cG(3)+Gauss 3'], us['diffrax Tsit5'])}; "
-                  f"{x(us['cG(1)+midpoint'], us['diffrax Tsit5'])}"],
-                 ["FPUT N = 512 against N = 64: growth of time per step", pair(growth, "cG(3)+Gauss 3", "cG(1)+midpoint", "x"),
-                  pair(growth, "diffrax Tsit5", "leapfrog", "x"), ""]]
+        ours, theirs = ("cG(3)+Gauss 3", "cG(1)+midpoint"), ("diffrax Tsit5", "leapfrog")
+        rows += [["beta-FPUT chain, N = 64 (state 128), h = 0.05: µs per step", pair(us, *ours), pair(us, *theirs),
+                  f"{x(us[ours[0]], us[theirs[0]])}; {x(us[ours[1]], us[theirs[0]])}"],
+                 ["FPUT N = 512 against N = 64: growth of time per step", pair(growth, *ours, "x"),
+                  pair(growth, *theirs, "x"), ""]]
     for part, title, thresholds in (("kepler", "Kepler e = 0.6, T = 20", ("1e-10", "1e-12")),
                                     ("quartic", "quartic central force c = 1000, T = 1 (relative)", ("1e-8", "1e-10"))):
         for i, threshold in enumerate(thresholds if part in results else ()):
@@ -344,8 +330,9 @@ def table(results):
     if "long" in results:
         us = {solver: row["us_per_step"] for solver, row in results["long"].items()}
         rows.append([f"Kepler e = 0.6, {results['long']['cG(3)+Gauss 3']['n_steps']:,} steps of h = 0.01: µs per step",
-                     pair(us, "cG(3)+Gauss 3", "cG(1)+midpoint"), f"hand-written Gauss RK s=3: {fmt(us['Gauss RK s=3'])}; "
-                     f"{pair(us, 'diffrax Dopri8', 'leapfrog')}", f"{x(us['cG(3)+Gauss 3'], us['Gauss RK s=3'])} (cG(3) / Gauss RK)"])
+                     pair(us, "cG(3)+Gauss 3", "cG(1)+midpoint"),
+                     f"hand-written Gauss RK s=3: {fmt(us['Gauss RK s=3'])}; {pair(us, 'diffrax Dopri8', 'leapfrog')}",
+                     f"{x(us['cG(3)+Gauss 3'], us['Gauss RK s=3'])} (cG(3) / Gauss RK)"])
     for label, r in results.get("explicit", {}).items():
         rows.append([f"{label}, {r['n_steps']:,} Stormer-Verlet steps: µs per step",
                      f"GalerkinVI(1, trapezoid): {fmt(r['galerkin_jax_us_per_step'])}",

@@ -18,7 +18,7 @@ import argparse
 import pathlib
 import sys
 
-from _common import write  # first: one BLAS thread, float64
+from _common import show, write  # first: one BLAS thread
 
 import numpy as np  # noqa: E402
 
@@ -46,19 +46,15 @@ def main():
     options = parser.parse_args()
     rows = {}
     for name in options.only:
-        rows[name] = r = row(name)
-        print(f"{name:82} plain {r['plain_newton_iterations']:3d}  ours {r['iterations']:3d}  "
-              f"(x{r['ratio']:.2f})  status {r['status']}  root difference {r['root_difference_eps']:7.2f} eps  "
-              f"without watchdog {r['iterations_without_watchdog']:3d} (status {r['status_without_watchdog']})  "
-              f"tangent error {r['tangent_error_cond_eps']:5.1f} cond eps",
-              flush=True)
+        rows[name] = row(name)
+        show(name, rows[name])
     ratios = np.array([r["ratio"] for r in rows.values()])
     summary = {"cases": len(rows), "max_ratio": float(ratios.max()), "mean_ratio": float(ratios.mean()),
                "failures": sum(r["status"] != 0 for r in rows.values()),
                "failures_without_watchdog": sum(r["status_without_watchdog"] != 0 for r in rows.values()),
                "default_cap": gj.SolverOptions().max_iterations,
                "max_tangent_error_cond_eps": float(max(r["tangent_error_cond_eps"] for r in rows.values()))}
-    print(summary)
+    show("summary", summary)
     write(options.name, {"summary": summary, "rows": rows})
 
 
