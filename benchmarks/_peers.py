@@ -140,7 +140,7 @@ def gauss_step(H, h, stages=3, weights=(1.0,), max_iterations=50):
 
         def iterate(c):
             Z, _, i = c
-            Z1 = w * h * A @ jax.vmap(f)(z + Z)
+            Z1 = w * h * A @ jax.vmap(f)(z[None] + Z)
             return Z1, jnp.max(jnp.abs(Z1 - Z)), i + 1
 
         Z, _, i = jax.lax.while_loop(lambda c: (c[1] > tol) & (c[2] < max_iterations), iterate, (Z, jnp.inf, 0))
