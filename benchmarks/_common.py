@@ -12,6 +12,7 @@ import importlib.metadata  # noqa: E402
 import json  # noqa: E402
 import pathlib  # noqa: E402
 import platform  # noqa: E402
+import shlex  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -77,7 +78,7 @@ def machine():
     with open("/proc/loadavg") as f:
         load = f.read().split()[:3]
     return {
-        "command": " ".join(["python"] + sys.argv),
+        "command": "python " + shlex.join(sys.orig_argv[1:]),  # as typed: ``-m benchmarks NAME`` or the script
         "commit": _commit(),
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "processor": platform.processor() or platform.machine(),

@@ -79,7 +79,7 @@ def test_a_guard_runs_and_writes_its_record_and_table(tmp_path):
     done = _run("peers", "--quick", "--only", "explicit", "--name", "smoke", env=env, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     result = json.loads((tmp_path / "smoke.json").read_text())
-    assert result["machine"]["command"].endswith("--quick --only explicit --name smoke")
+    assert result["machine"]["command"] == "python -m benchmarks peers --quick --only explicit --name smoke"
     assert result["versions"]["diffrax"] and result["quick"]
     for scene in ("LJ13", "FPUT N = 64"):
         row = result["explicit"][scene]
