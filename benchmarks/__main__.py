@@ -3,8 +3,8 @@
     python -m benchmarks                  # what it can run, one line each
     python -m benchmarks NAME [OPTIONS]   # run benchmarks/bench_NAME.py with its options
 
-Each benchmark writes ``benchmarks/results/<name>.json`` with the command, the machine, the
-commit and the date (``_common.write``).
+Each writes ``benchmarks/results/<name>.json`` with the command, machine, commit and date
+(``_common.write``).
 """
 
 import ast
@@ -16,12 +16,9 @@ HERE = pathlib.Path(__file__).parent
 
 
 def available():
-    """``{name: the first line of its docstring}`` of every ``bench_*.py``."""
-    found = {}
-    for path in sorted(HERE.glob("bench_*.py")):
-        doc = ast.get_docstring(ast.parse(path.read_text())) or ""
-        found[path.stem[len("bench_"):]] = doc.strip().splitlines()[0] if doc.strip() else ""
-    return found
+    """``{name: the first paragraph of its docstring}`` of every ``bench_*.py``."""
+    first = lambda path: (ast.get_docstring(ast.parse(path.read_text())) or "").split("\n\n")[0]
+    return {path.stem[len("bench_"):]: " ".join(first(path).split()) for path in sorted(HERE.glob("bench_*.py"))}
 
 
 def main(argv):

@@ -1,73 +1,29 @@
-"""Timing and result-writing helpers shared by the benchmarks."""
+"""What the benchmarks share: one BLAS thread, timing (compile apart from run), the record of
+the machine, and one writer of results (JSON, and a markdown table where there is one)."""
 
-import contextlib
-import datetime
-import json
-import pathlib
-import platform
-import subprocess
-import sys
-import time
-import timeit
+import os
 
-import jax
-import jax.numpy as jnp
-import numpy as np
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # before NumPy and JAX load a BLAS: SciPy's peers and LAPACK on one thread
 
-RESULTS = pathlib.Path(__file__).parent / "results"
+import contextlib  # noqa: E402
+import datetime  # noqa: E402
+import importlib.metadata  # noqa: E402
+import json  # noqa: E402
+import pathlib  # noqa: E402
+import platform  # noqa: E402
+import shlex  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
 
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
 
-def timed(fn, *args, repeat=5):
-    """(compile_s, run_s): ahead-of-time compilation, then the best of ``repeat`` runs."""
-    t0 = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(*args))
-    run_s = min(timeit.repeat(lambda: jax.block_until_ready(compiled(*args)), number=1, repeat=repeat))
-    return compile_s, run_s
+jax.config.update("jax_enable_x64", True)  # the benchmarks' processes only, never the library
 
-
-def _commit():
-    """The git commit of the tree the benchmark ran on ("+" where it had uncommitted changes)."""
-    here = pathlib.Path(__file__).parent
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True,
-                              timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return (head + ("+" if dirty else "")) or None
-
-
-def machine():
-    with open("/proc/loadavg") as f:
-        load = f.read().split()[:3]
-    return {
-        "command": " ".join(["python"] + sys.argv),
-        "commit": _commit(),
-        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "processor": platform.processor() or platform.machine(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "devices": [str(d) for d in jax.devices()],
-        "load_average": load,
-    }
-
-
-def write(name, results):
-    RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"{name}.json"
-    path.write_text(json.dumps({"machine": machine(), **results}, indent=2))
-    print(f"wrote {path}")
-
-
-def energy_quarters(t, dH, T):
-    """The largest |dH| over the nodes (times t) of a run to T, in its first and in its last
-    quarter, and their ratio (a drift shows as a ratio well above 1)."""
-    first, last = (float(np.max(dH[(t >= a * T / 4) & (t <= (a + 1) * T / 4)])) for a in (0, 3))
-    return dict(max_energy_error=float(np.max(dH)), first_quarter=first, last_quarter=last,
-                last_over_first=last / first)
+# where results go: benchmarks/results, or $BENCHMARKS_RESULTS (the smoke tests write elsewhere)
+RESULTS = pathlib.Path(os.environ.get("BENCHMARKS_RESULTS") or pathlib.Path(__file__).parent / "results")
 
 
 def compiled(fn, *args):
@@ -92,40 +48,96 @@ def best_time(call, *args, repeat=3, min_s=0.1, budget_s=3.0):
     return min(times)
 
 
-def chained_us(step, carry, calls=200, repeat=5):
-    """Microseconds per call of ``step`` (carry -> carry of the same shapes), from ``calls``
-    chained calls in one compiled loop (one program's launch spread over them), warmed up, the
-    best of ``repeat`` (``best_time``)."""
-    _, call = compiled(lambda c: jax.lax.fori_loop(0, calls, lambda _, c: step(c), c), carry)
-    jax.block_until_ready(call(carry))
-    return 1e6 * best_time(call, carry, repeat=repeat) / calls
+def timed(fn, *args, repeat=5):
+    """(compile_s, run_s): ``compiled``, one warm-up call, then ``best_time``."""
+    compile_s, call = compiled(fn, *args)
+    jax.block_until_ready(call(*args))
+    return compile_s, best_time(call, *args, repeat=repeat)
+
+
+def _commit():
+    """The git commit of the tree the benchmark ran on ("+" where it had uncommitted changes)."""
+    here = pathlib.Path(__file__).parent
+    try:
+        git = lambda *a: subprocess.run(["git", *a], cwd=here, capture_output=True, text=True, timeout=10).stdout.strip()
+        head, dirty = git("rev-parse", "--short", "HEAD"), git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return (head + ("+" if dirty else "")) or None
+
+
+def _version(package):
+    try:
+        return importlib.metadata.version(package)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def machine():
+    """The record every result file carries: command, commit, date, the machine and the versions."""
+    with open("/proc/loadavg") as f:
+        load = f.read().split()[:3]
+    return {
+        "command": "python " + shlex.join(sys.orig_argv[1:]),  # as typed: ``-m benchmarks NAME`` or the script
+        "commit": _commit(),
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "processor": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "versions": {p: _version(p) for p in ("numpy", "scipy", "diffrax", "optimistix", "equinox")},
+        "jax_enable_x64": bool(jax.config.jax_enable_x64),
+        "devices": [str(d) for d in jax.devices()],
+        "load_average": load,
+    }
+
+
+def write(name, results, markdown=None):
+    """``results/<name>.json``: the machine's record (``machine``) and ``results``; with
+    ``markdown`` also ``results/<name>.md`` (the command and date first) and the table in the JSON."""
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    record = machine()
+    if markdown is not None:
+        results = dict(results, table=markdown)
+        (RESULTS / f"{name}.md").write_text(f"`{record['command']}` at {record['commit']}, {record['date']}\n\n"
+                                            + markdown)
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps({"machine": record, **results}, indent=2))
+    print(f"wrote {path}")
+
+
+def show(label, row, *keys):
+    """One progress line: ``label`` and ``row``'s ``keys`` (all, without them; numbers to three digits)."""
+    text = ", ".join(f"{k} {row[k]:.3g}" if isinstance(row[k], float) else f"{k} {row[k]}" for k in keys or row
+                     if row.get(k) is not None and not isinstance(row[k], (dict, list)))
+    print(f"  {label}: {text}", flush=True)
+
+
+def markdown_table(header, rows):
+    """A markdown table of ``header`` (column names) and ``rows`` (lists of cells)."""
+    return "\n".join("| " + " | ".join(map(str, row)) + " |" for row in [header, ["---"] * len(header), *rows])
+
+
+def energy_quarters(t, dH, T):
+    """The largest |dH| over the nodes (times t) of a run to T, in its first and in its last
+    quarter, and their ratio (a drift shows as a ratio well above 1)."""
+    first, last = (float(np.max(dH[(t >= a * T / 4) & (t <= (a + 1) * T / 4)])) for a in (0, 3))
+    return dict(max_energy_error=float(np.max(dH)), first_quarter=first, last_quarter=last,
+                last_over_first=last / first)
 
 
 @contextlib.contextmanager
-def figure(path, ncols=1, size=(6, 4.5)):
-    """``with figure(path) as axes``: a headless Matplotlib figure of ``ncols`` Axes side by
-    side (each ``size`` inches), laid out and saved to ``path`` (dpi 100) on exit."""
+def figure(path, ncols=1, nrows=1, size=(6, 4.5), dpi=100):
+    """``with figure(path) as axes``: a headless Matplotlib figure of ``nrows`` x ``ncols`` Axes
+    (each ``size`` inches; one row: a flat array), laid out and saved to ``path`` on exit."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, ncols, figsize=(size[0] * ncols, size[1]), squeeze=False)
-    yield axes[0]
+    pathlib.Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(size[0] * ncols, size[1] * nrows), squeeze=False)
+    yield axes[0] if nrows == 1 else axes
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
-
-
-def element_polynomials(method, H, z, h):
-    """Each element's own polynomial ``W`` (m, 2d), solved again from its start node ``z[n]``
-    over ``h[n]`` (H bound to its args): dense output holds it refined (``_output.refined``)."""
-    from galerkin_jax._march import solve_element, solver_options
-
-    options = solver_options(method)
-
-    def one(z0, h):
-        q, p = jnp.split(z0, 2)
-        return method.polynomial(H, q, p, solve_element(method, H, q, p, h, None, options)[2], h)
-
-    return jax.jit(jax.vmap(one))(jnp.asarray(z), jnp.broadcast_to(jnp.asarray(h), (len(z),)))

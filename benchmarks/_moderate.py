@@ -12,8 +12,8 @@ chosen as a user of each field would choose them. Reduced units throughout, floa
 * A non-separable chain (``pendulum_chain``): the planar N-link pendulum in its joint angles,
   H = p^T M(q)^-1 p / 2 + V(q) with the links' mass matrix.
 
-Each factory returns a ``System``; ``V`` and ``masses`` are given for separable systems
-(H = sum p^2 / 2m + V(q)), which the explicit splitting peers need. The library never imports this.
+Each factory returns a ``System``; ``V`` is given for separable systems (H = sum p^2 / 2m +
+V(q)), where the explicit peers apply. The library never imports this.
 """
 
 import dataclasses
@@ -36,7 +36,6 @@ class System:
         q0, p0: NumPy float64, shape ``(d,)``.
         T: the span.
         V: ``V(q)`` for a separable H (``H = p^2 / 2m + V``), else None.
-        masses: shape ``(d,)``, the mass of each coordinate of a separable H, else None.
         facts: what the start is, in numbers (its energy, temperature, ...), for the results file.
     """
 
@@ -47,7 +46,6 @@ class System:
     p0: np.ndarray
     T: float
     V: Optional[Callable] = None
-    masses: Optional[np.ndarray] = None
     facts: dict = dataclasses.field(default_factory=dict)
 
 
@@ -55,9 +53,6 @@ def separable(V, masses):
     """H(q, p) = sum p^2 / 2m + V(q)."""
     inverse = jnp.asarray(1.0 / masses)
     return lambda q, p: 0.5 * jnp.sum(inverse * p * p) + V(q)
-
-
-# ---------------------------------------------------------------- clusters
 
 
 def pair_potential(phi):
@@ -161,7 +156,7 @@ def cluster(kind, n, temperature, T, seed, rho=6.0):
     description = (f"{label} cluster of {n} atoms: relaxed Mackay icosahedron (V = {energy:.6f}), Maxwell-Boltzmann "
                    f"velocities at T* = {temperature:g} (seed {seed}), zero momentum and angular momentum, span {T:g}")
     facts = dict(minimum_energy=energy, minimum_gradient=gradient, temperature=temperature, seed=seed, atoms=n)
-    return System(name, description, separable(V, masses), x, v.ravel(), T, V=V, masses=masses, facts=facts)
+    return System(name, description, separable(V, masses), x, v.ravel(), T, V=V, facts=facts)
 
 
 def lennard_jones(n, temperature=0.3, T=50.0, seed=0):
@@ -173,9 +168,6 @@ def lennard_jones(n, temperature=0.3, T=50.0, seed=0):
 def morse(n, temperature=0.3, T=50.0, seed=0, rho=6.0):
     """A Morse cluster at rho = 6 (``cluster``): M13's minimum -42.439863 (Doye and Wales 1997)."""
     return cluster("morse", n, temperature, T, seed, rho)
-
-
-# ---------------------------------------------------------------- gravity
 
 
 def plummer(n, softening=None, T=10.0, seed=0):
@@ -214,17 +206,13 @@ def plummer(n, softening=None, T=10.0, seed=0):
     description = (f"Plummer sphere of {n} equal masses, G = M = 1, Henon units, softening {eps:g} "
                    f"(seed {seed}), virial equilibrium of the softened potential, span {T:g}")
     facts = dict(bodies=n, softening=eps, seed=seed, potential=W, kinetic=-W / 2, energy=W / 2)
-    return System(f"Plummer{n}", description, separable(V, masses), x.ravel(), (m * v).ravel(), T, V=V,
-                  masses=masses, facts=facts)
+    return System(f"Plummer{n}", description, separable(V, masses), x.ravel(), (m * v).ravel(), T, V=V, facts=facts)
 
 
 def _directions(rng, n):
     """``n`` isotropic unit vectors."""
     u = rng.normal(size=(n, 3))
     return u / np.linalg.norm(u, axis=1, keepdims=True)
-
-
-# ---------------------------------------------------------------- chain
 
 
 def pendulum_chain(n, angle=0.5, T=20.0, seed=0):

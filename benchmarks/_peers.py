@@ -1,11 +1,12 @@
-"""The peers of ``bench_peers.py``: diffrax, SciPy ``solve_ivp``, and two integrators written
-directly in JAX (leapfrog, 3-stage Gauss Runge-Kutta).
+"""The peers every benchmark compares with: diffrax, SciPy ``solve_ivp``, and integrators written
+directly in JAX (velocity Verlet and Gauss collocation by fixed-point iteration, each composable).
 
-Every peer is a factory ``make(H, T, knob) -> run`` with ``run(z0) -> (z1, status)``: ``z0``
-and ``z1`` are the state ``z = (q, p)`` of shape ``(2d,)`` at t = 0 and t = T, and status is
-0 on success. ``knob`` is the number of steps of size ``T / knob`` (fixed-step peers) or the
-tolerance ``rtol = atol`` (adaptive peers). A JAX ``run`` is jitted by the caller; a SciPy
-``run`` is plain Python (``is_python`` tells them apart). The library never imports this.
+A peer of ``bench_peers`` is a factory ``make(H, T, knob) -> run`` with ``run(z0) -> (z1,
+status)``: ``z0`` and ``z1`` are the state ``z = (q, p)`` of shape ``(2d,)`` at t = 0 and t = T,
+status 0 on success; ``knob`` is the number of steps of ``T / knob`` (fixed steps) or ``rtol =
+atol`` (adaptive). The steps themselves (``diffrax_solve``, ``verlet_step``, ``gauss_step``) serve
+the other benchmarks' own loops. A JAX ``run`` is jitted by the caller; a SciPy ``run`` is plain
+Python (``run.is_python``). The library never imports this.
 """
 
 import diffrax
@@ -15,14 +16,15 @@ import numpy as np
 import optimistix as optx
 import scipy.integrate
 
-# The 3-stage Gauss method (order 6), Hairer-Lubich-Wanner, Table II.1.2.
+# Gauss collocation's tables, Hairer-Lubich-Wanner Table II.1.2: s = 1 is the implicit midpoint rule
 _R = np.sqrt(15.0)
-GAUSS3_A = np.array([
-    [5 / 36, 2 / 9 - _R / 15, 5 / 36 - _R / 30],
-    [5 / 36 + _R / 24, 2 / 9, 5 / 36 - _R / 24],
-    [5 / 36 + _R / 30, 2 / 9 + _R / 15, 5 / 36],
-])
-GAUSS3_B = np.array([5 / 18, 4 / 9, 5 / 18])
+GAUSS = {
+    1: (np.array([[0.5]]), np.array([1.0])),
+    3: (np.array([[5 / 36, 2 / 9 - _R / 15, 5 / 36 - _R / 30], [5 / 36 + _R / 24, 2 / 9, 5 / 36 - _R / 24],
+                  [5 / 36 + _R / 30, 2 / 9 + _R / 15, 5 / 36]]), np.array([5 / 18, 4 / 9, 5 / 18])),
+}
+# Yoshida's fourth-order triple jump [Yoshida 1990]: the weights of a composition of a symmetric step
+TRIPLE_JUMP = (1 / (2 - 2 ** (1 / 3)), -(2 ** (1 / 3)) / (2 - 2 ** (1 / 3)), 1 / (2 - 2 ** (1 / 3)))
 
 
 def hamiltonian_field(H):
@@ -37,31 +39,26 @@ def hamiltonian_field(H):
     return f
 
 
-def _diffrax_solve(H, T, z0, solver, dt0, controller, max_steps):
+def diffrax_solve(H, T, z0, solver, dt0, controller, max_steps):
+    """diffrax from 0 to T on ``z = (q, p)``: ``(z1, status, accepted, rejected)``."""
     solution = diffrax.diffeqsolve(
         diffrax.ODETerm(lambda t, z, args: hamiltonian_field(H)(z)), solver, 0.0, T, dt0, z0,
         saveat=diffrax.SaveAt(t1=True), stepsize_controller=controller, max_steps=max_steps, throw=False,
     )
-    return solution.ys[-1], jnp.where(solution.result == diffrax.RESULTS.successful, 0, 1)
+    status = jnp.where(solution.result == diffrax.RESULTS.successful, 0, 1)
+    return solution.ys[-1], status, solution.stats["num_accepted_steps"], solution.stats["num_rejected_steps"]
 
 
-def diffrax_fixed(solver):
-    """diffrax ``solver`` with ``n`` constant steps ``h = T / n`` (the knob is n)."""
+def diffrax_peer(solver, pid=False, max_steps=1_000_000):
+    """diffrax ``solver`` as a peer: ``n`` constant steps of ``T / n`` (the knob n; a few spare
+    steps: the last is clipped to T) or, with ``pid``, a PID controller (the knob rtol = atol,
+    the first step diffrax's)."""
 
-    def make(H, T, n):
-        # a few spare steps: the last step is clipped to T, rounding may add one
-        return lambda z0: _diffrax_solve(H, T, z0, solver, T / n, diffrax.ConstantStepSize(), n + 4)
-
-    return make
-
-
-def diffrax_pid(solver, max_steps=1_000_000):
-    """diffrax ``solver`` with a PID controller, ``rtol = atol = tol`` (the knob), the initial
-    step chosen by diffrax."""
-
-    def make(H, T, tol):
-        controller = diffrax.PIDController(rtol=tol, atol=tol)
-        return lambda z0: _diffrax_solve(H, T, z0, solver, None, controller, max_steps)
+    def make(H, T, knob):
+        if pid:
+            return lambda z0: diffrax_solve(H, T, z0, solver, None, diffrax.PIDController(rtol=knob, atol=knob),
+                                            max_steps)[:2]
+        return lambda z0: diffrax_solve(H, T, z0, solver, T / knob, diffrax.ConstantStepSize(), knob + 4)[:2]
 
     return make
 
@@ -95,84 +92,79 @@ def scipy_ivp(method):
     return make
 
 
-def leapfrog(H, T, n):
-    """Stormer-Verlet (kick-drift-kick, one force evaluation per step) for separable H:
-    dH/dq is evaluated at the half-step momentum, which it does not depend on."""
-    h = T / n
+def verlet_step(H, h, weights=(1.0,)):
+    """Velocity Verlet (kick-drift-kick) for separable H, composed with ``weights`` (one
+    substep each): ``step((q, p, force)) -> (q, p, force)``, force = dH/dq at q carried from
+    the substep before, so one gradient of V per substep (dH/dq is taken at the half-step
+    momentum, which it does not depend on)."""
     dHq, dHp = jax.grad(H, argnums=0), jax.grad(H, argnums=1)
 
-    def step(carry, _):
+    def step(carry):
         q, p, force = carry
-        p_half = p - 0.5 * h * force
-        q1 = q + h * dHp(q, p_half)
-        force1 = dHq(q1, p_half)
-        return (q1, p_half - 0.5 * h * force1, force1), None
+        for w in weights:
+            p = p - 0.5 * w * h * force
+            q = q + w * h * dHp(q, p)
+            force = dHq(q, p)
+            p = p - 0.5 * w * h * force
+        return q, p, force
+
+    return step
+
+
+def leapfrog(H, T, n, weights=(1.0,)):
+    """``verlet_step`` as a peer: n steps of T / n in a ``lax.scan``."""
+    step = verlet_step(H, T / n, weights)
 
     def run(z0):
         q, p = jnp.split(z0, 2)
-        (q, p, _), _ = jax.lax.scan(step, (q, p, dHq(q, p)), None, length=n)
+        (q, p, _), _ = jax.lax.scan(lambda c, _: (step(c), None), (q, p, jax.grad(H)(q, p)), None, length=n)
         return jnp.concatenate([q, p]), jnp.zeros((), jnp.int32)
 
     return run
 
 
-def gauss_rk3(H, T, n, max_iterations=50):
-    """The 3-stage Gauss Runge-Kutta method (Gauss collocation, order 6) with fixed-point
-    iteration on the stage increments Z_i = h sum_j a_ij f(z0 + Z_j), the usual choice for
-    non-stiff problems [Hairer, Lubich, Wanner, Sect. VIII.6]: predictor the previous step's
-    increments, stop at the round-off floor (on a non-stiff problem a fixed-point update is far
-    cheaper than a Newton update with a dense Jacobian). ``lax.scan`` over steps; status 1 if
-    some step took ``max_iterations``."""
-    h, f = T / n, hamiltonian_field(H)
-    A, b = jnp.asarray(GAUSS3_A), jnp.asarray(GAUSS3_B)
+def gauss_step(H, h, stages=3, weights=(1.0,), max_iterations=50):
+    """Gauss collocation of ``stages`` stages (order 2s; s = 1: the implicit midpoint rule),
+    composed with ``weights``, by fixed-point iteration on the stage increments Z_i = h sum_j
+    a_ij f(z0 + Z_j), the usual choice for non-stiff problems [Hairer, Lubich, Wanner, Sect.
+    VIII.6]: each substep's iteration starts from its own increments of the step before and
+    stops at the round-off floor; z1 = z0 + b^T A^-1 Z (no further field evaluation).
+    ``step((z, Zs, status, updates))``: Zs of shape (len(weights), s, 2d), status 1 once a
+    substep took ``max_iterations``, updates counted (each ``stages`` field evaluations)."""
+    f = hamiltonian_field(H)
+    A, b = GAUSS[stages]
+    A, d = jnp.asarray(A), jnp.asarray(np.linalg.solve(A.T, b))
 
-    def step(carry, _):
-        z0, Z, status = carry
-        tol = 10 * jnp.finfo(z0.dtype).eps * (1 + jnp.max(jnp.abs(z0)))
+    def substep(z, Z, w):
+        tol = 10 * jnp.finfo(z.dtype).eps * (1 + jnp.max(jnp.abs(z)))
 
         def iterate(c):
             Z, _, i = c
-            Z1 = h * A @ jax.vmap(f)(z0 + Z)
+            Z1 = w * h * A @ jax.vmap(f)(z[None] + Z)
             return Z1, jnp.max(jnp.abs(Z1 - Z)), i + 1
 
         Z, _, i = jax.lax.while_loop(lambda c: (c[1] > tol) & (c[2] < max_iterations), iterate, (Z, jnp.inf, 0))
-        z1 = z0 + h * b @ jax.vmap(f)(z0 + Z)
-        return (z1, Z, jnp.where(i >= max_iterations, 1, status)), None
+        return z + d @ Z, Z, i
+
+    def step(carry):
+        z, Zs, status, updates = carry
+        new = []
+        for j, w in enumerate(weights):
+            z, Z, i = substep(z, Zs[j], w)
+            new.append(Z)
+            status, updates = jnp.where(i >= max_iterations, 1, status), updates + i
+        return z, jnp.stack(new), status, updates
+
+    return step
+
+
+def gauss_rk(H, T, n, stages=3):
+    """``gauss_step`` as a peer: n steps of T / n in a ``lax.scan``."""
+    step = gauss_step(H, T / n, stages)
 
     def run(z0):
-        (z1, _, status), _ = jax.lax.scan(step, (z0, jnp.zeros((3, z0.size), z0.dtype), 0), None, length=n)
+        carry = (z0, jnp.zeros((1, stages, z0.size), z0.dtype), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
+        (z1, _, status, _), _ = jax.lax.scan(lambda c, _: (step(c), None), carry, None, length=n)
         return z1, status
 
     return run
-
-
-def is_python(run):
-    return getattr(run, "is_python", False)
-
-
-def diffrax_pid_counted(solver, max_steps=1_000_000):
-    """diffrax ``solver`` with a PID controller (``rtol = atol = tol``, the initial step chosen by
-    diffrax) as ``run(z0, T, tol) -> (z1, status, accepted, rejected)``: the span and the
-    tolerance are arguments, so one compilation serves a whole tolerance sweep (``bench_adaptive``)."""
-
-    def make(H):
-        field = hamiltonian_field(H)
-
-        def run(z0, T, tol):
-            solution = diffrax.diffeqsolve(
-                diffrax.ODETerm(lambda t, z, args: field(z)), solver, 0.0, T, None, z0,
-                saveat=diffrax.SaveAt(t1=True), stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
-                max_steps=max_steps, throw=False,
-            )
-            status = jnp.where(solution.result == diffrax.RESULTS.successful, 0, 1)
-            return solution.ys[-1], status, solution.stats["num_accepted_steps"], solution.stats["num_rejected_steps"]
-
-        return run
-
-    return make
-
-
-def versions():
-    """The versions of the peers and of NumPy, and whether JAX runs in float64 (a result file's record)."""
-    return {"diffrax": diffrax.__version__, "optimistix": optx.__version__, "scipy": scipy.__version__,
-            "numpy": np.__version__, "jax_enable_x64": bool(jax.config.jax_enable_x64)}

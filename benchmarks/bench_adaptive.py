@@ -1,46 +1,32 @@
 """Adaptive steps (issue 22, item 9): galerkin_jax's PIDController and TimeTransform against
 diffrax Dopri8 + PID and Tsit5 + PID, and against uniform steps over long runs.
 
-    python benchmarks/bench_adaptive.py [--quick] [--only a b c d] [--orbits 1000] [--e 0.9]
+    python -m benchmarks adaptive [--quick] [--only a b c] [--orbits 1000] [--e 0.9]
 
-Four parts, in one process, BLAS pinned to one thread:
-  a  Kepler e = 0.9 and e = 0.99, 10 orbits from apocentre: work-precision (run time and steps
-     against the final error, max-norm against the exact orbit), cG(k)+Gauss k with a
-     PIDController (k = 4, 6, 8; rtol = atol = tol, one run per decade), cG(6)+Gauss 7 with it
-     (one quadrature point more: the energy error of a step O(h^(2k + 3)), not O(h^(2k + 1)),
-     so a smaller phase error at the same steps; docs/adaptive.md), cG(6)+Gauss 6 with the
-     TimeTransform (h in tau swept), diffrax Dopri8 and Tsit5 with PID (rtol = atol = tol, one
-     run per decade from 1e-6 to 1e-15);
-     at each target final error the cost of each solver interpolated on its log-log curve, and
-     the ratio ours / best peer;
-  b  the Pythagorean three-body problem (masses 3, 4, 5 at rest, G = 1), t in [0, 5], with its
-     close encounters (steps from 1e-5 to 0.3): the same comparison against a reference
-     (cG(8)+Gauss 8 with the TimeTransform at a small step, checked against SciPy DOP853 and
-     against a change of 1e-14 in q0; no target below its resolution);
-  c  Kepler e = 0.9 (``--e 0.99``) over ``--orbits`` orbits (default 1000; 100 with --quick), cG(4)+Gauss 4
+Three parts, in one process:
+  a  Kepler e = 0.9 and e = 0.99, 10 orbits from apocentre: work-precision (run time, steps and
+     field evaluations against the final error, max-norm against the exact orbit) of cG(k)+Gauss
+     k with a PIDController (k = 4, 6, 8; one run per decade of rtol = atol), cG(6)+Gauss 7 with
+     it (one quadrature point more, docs/adaptive.md), cG(6)+Gauss 6 with the TimeTransform (h in
+     tau swept), diffrax Dopri8 and Tsit5 with PID (1e-6 .. 1e-15); at each target final error the
+     cost of each solver interpolated on its log-log curve, and the ratio ours / best peer;
+  b  the Pythagorean three-body problem (masses 3, 4, 5 at rest, G = 1), t in [0, 5]: the same
+     against a reference (cG(8)+Gauss 8 with the TimeTransform at a small step, checked against
+     SciPy DOP853 and against a change of 1e-14 in q0; no target below its resolution);
+  c  Kepler e = 0.9 (``--e 0.99``) over ``--orbits`` orbits (1000; 100 with --quick), cG(4)+Gauss 4
      with the TimeTransform (its default s, and Kepler's own s = (r / r0)^(3/2)), the
-     PIDController and uniform steps (fixed steps, every state saved): the maximum energy error
-     over the nodes against run time, the first quarter's against the last quarter's, and the
-     uniform cost at the TimeTransform's energy error;
-  d  the share of the controller's estimate (``embedded_error``) in a step: the PID run again
-     with four more estimates per attempt (the same steps; the extra time over four is one
-     estimate's cost in the loop), and the estimate alone over the run's elements (in a
-     ``lax.scan``, and vmapped), each against the PID run's time per attempt.
-Compile time (ahead of time) is reported apart from the run time (best of several calls).
-Writes results/adaptive.json and results/adaptive_work_precision.png, adaptive_energy.png
-(``--quick`` and ``--only`` add a suffix unless ``--name`` is given).
+     PIDController and uniform steps: the maximum energy error over the nodes against run time,
+     the first quarter's against the last quarter's, the uniform cost at the TimeTransform's error.
+Compile time (ahead of time) apart from run time (best of several calls). Writes
+results/adaptive.json, adaptive_work_precision.png and adaptive_energy.png (``--quick`` and
+``--only`` add a suffix unless ``--name`` is given).
 """
 
-import os
+import argparse
+import time
+import warnings
 
-for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
-    os.environ[_var] = "1"  # a threaded LAPACK (the LU of cG(8)'s 32 unknowns) stalls on a busy machine
-
-import argparse  # noqa: E402
-import pathlib  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-import warnings  # noqa: E402
+from _common import RESULTS, best_time, compiled, energy_quarters, figure, show, write  # first: one BLAS thread
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
@@ -48,15 +34,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.integrate  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-
 import _peers as peers  # noqa: E402
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, best_time, compiled, element_polynomials, energy_quarters, figure, write  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
-from galerkin_jax import _adaptive as adaptive  # noqa: E402
-from galerkin_jax._controllers import embedded_error  # noqa: E402
 
 warnings.filterwarnings("ignore", message="At least one element of `rtol` is too small")
 
@@ -69,9 +49,6 @@ PEER_STAGES = {"diffrax Dopri8+PID": 12, "diffrax Tsit5+PID": 6}
 
 def gauss(k):
     return gj.CG(k, gj.gauss_legendre(k))
-
-
-# ---------------------------------------------------------------- problems
 
 
 KEPLER_H = scenes.kepler().H  # one function, so that both eccentricities share a compilation
@@ -125,14 +102,9 @@ def pythagorean_problem(T=5.0):
                  dop853_1e14=float(np.max(np.abs(dop.y[:, -1] - ends[1]))),
                  q0_perturbed_1e14=float(np.max(np.abs(ends[2] - ends[1]))))
     check["resolution"] = 10 * max(check.values())
-    print(f"  Pythagorean reference: |TT(h) - TT(h/2)| = {check['tt_h_vs_h2']:.1e}, |DOP853 - TT| = "
-          f"{check['dop853_1e14']:.1e}, q0 + 1e-14: {check['q0_perturbed_1e14']:.1e}; "
-          f"resolution {check['resolution']:.1e}")
+    show("Pythagorean reference", check)
     return dict(H=three_body, q0=q0, p0=p0, T=T, z1=ends[1], reference=check, resolution=check["resolution"],
                 tt_h=(0.32, 0.16, 0.08, 0.04, 0.02))
-
-
-# ---------------------------------------------------------------- runs
 
 
 def ours(method, kind):
@@ -146,9 +118,8 @@ def ours(method, kind):
             h = knob if tt else 1e-3 * T
             sol = gj.integrate(H, q0, p0, method=method, h=h, t1=T, controller=controller, max_steps=MAX_STEPS,
                                error_estimate=False)
-            s = sol.stats
-            return (jnp.concatenate([sol.q[-1], sol.p[-1]]), sol.status, s["num_accepted_steps"], s["num_rejected_steps"],
-                    s["num_newton_iterations"])
+            return (jnp.concatenate([sol.q[-1], sol.p[-1]]), sol.status,
+                    *(sol.stats[f"num_{k}"] for k in ("accepted_steps", "rejected_steps", "newton_iterations")))
 
         return run
 
@@ -156,16 +127,16 @@ def ours(method, kind):
 
 
 def peer(solver):
-    counted = peers.diffrax_pid_counted(solver, max_steps=MAX_STEPS)
+    """diffrax ``solver`` with a PID controller (rtol = atol = the knob, the first step diffrax's)."""
 
     def make(H):
-        run = counted(H)
-
-        def adapted(q0, p0, T, tol):
-            z1, status, accepted, rejected = run(jnp.concatenate([q0, p0]), T, tol)
+        def run(q0, p0, T, tol):
+            controller = diffrax.PIDController(rtol=tol, atol=tol)
+            z1, status, accepted, rejected = peers.diffrax_solve(H, T, jnp.concatenate([q0, p0]), solver, None,
+                                                                 controller, MAX_STEPS)
             return z1, status, accepted, rejected, jnp.zeros((), jnp.int32)
 
-        return adapted
+        return run
 
     return make
 
@@ -188,14 +159,12 @@ def sweep(problems, quick):
     """Every solver on every problem: one compilation per solver and problem family."""
     records = []
     for name, (make, knobs) in solvers(quick).items():
-        family_calls = {}
+        family_calls = {}  # by H: both Kepler problems share one program
         for label, prob in problems.items():
-            run = make(prob["H"])
-            args0 = (prob["q0"], prob["p0"], jnp.asarray(prob["T"]), jnp.asarray(1e-8))
-            key = id(prob["H"])
-            if key not in family_calls:
-                family_calls[key] = compiled(run, *args0)
-            compile_s, call = family_calls[key]
+            if id(prob["H"]) not in family_calls:
+                args = (prob["q0"], prob["p0"], jnp.asarray(prob["T"]), jnp.asarray(1e-8))
+                family_calls[id(prob["H"])] = compiled(make(prob["H"]), *args)
+            compile_s, call = family_calls[id(prob["H"])]
             for knob in prob[knobs] if isinstance(knobs, str) else knobs:
                 args = (prob["q0"], prob["p0"], jnp.asarray(prob["T"]), jnp.asarray(knob))
                 z1, status, steps, rejected, newton = call(*args)
@@ -206,9 +175,7 @@ def sweep(problems, quick):
                     rec["error"] = float(np.max(np.abs(np.asarray(z1) - prob["z1"])))
                     rec["run_s"] = best_time(call, *args, repeat=5, min_s=0.3, budget_s=2.0)
                 records.append(rec)
-                print(f"  {label:22s} {name:30s} knob {knob:7.0e}: status {rec['status']} steps {rec['steps']:6d} "
-                      f"rejected {rec['rejected']:4d} error {rec.get('error', np.nan):.2e} "
-                      f"run {1e3 * rec.get('run_s', np.nan):8.2f} ms (compile {compile_s:.1f} s)", flush=True)
+                show(f"{label}, {name}", rec, "knob", "status", "steps", "rejected", "error", "run_s", "compile_s")
     return records
 
 
@@ -226,85 +193,58 @@ def cost_at(points, target, key="run_s"):
     interpolation between the two neighbours that bracket it, the cheapest such crossing; None
     where the curve never reaches the target."""
     pts = [(p["error"], p[key]) for p in points if "error" in p]
-    best = None
+    costs = [c for e, c in pts if e <= target]  # the points that reach it, and the crossings
     for (e_a, c_a), (e_b, c_b) in zip(pts, pts[1:]):
         if min(e_a, e_b) <= target <= max(e_a, e_b) and e_a != e_b:
             w = (np.log(target) - np.log(e_a)) / (np.log(e_b) - np.log(e_a))
-            c = float(np.exp(np.log(c_a) + w * (np.log(c_b) - np.log(c_a))))
-            best = c if best is None else min(best, c)
-    reached = [c for e, c in pts if e <= target]
-    if reached:
-        best = min(reached) if best is None else min(best, min(reached))
-    return best
+            costs.append(float(np.exp(np.log(c_a) + w * (np.log(c_b) - np.log(c_a)))))
+    return min(costs, default=None)
 
 
 def ratios(records, problems):
-    """Per problem and target: each solver's interpolated run time and steps, the best peer, the
-    best of ours, and their ratio."""
-    table = []
-    names = sorted({r["solver"] for r in records})
-    for label in problems:
+    """Per problem and target: each solver's interpolated run time, steps and evaluations
+    (``cost_at``), the best peer, the best of ours, and their ratio."""
+    table, names = [], sorted({r["solver"] for r in records})
+    for label, prob in problems.items():
         for target in TARGETS:
-            if target < problems[label].get("resolution", 0.0):
-                table.append(dict(problem=label, target=target, below_resolution=True))
-                print(f"  {label:22s} error {target:.0e}: below the reference's resolution "
-                      f"{problems[label]['resolution']:.0e}", flush=True)
-                continue
-            row = dict(problem=label, target=target, run_s={}, steps={}, evaluations={})
-            for name in names:
-                pts = [r for r in records if r["problem"] == label and r["solver"] == name]
-                row["run_s"][name] = cost_at(pts, target)
-                row["steps"][name] = cost_at(pts, target, "steps")
-                row["evaluations"][name] = cost_at(pts, target, "evaluations")
-            reached = {n: c for n, c in row["run_s"].items() if c is not None}
-            peer_costs = {n: c for n, c in reached.items() if n in PEERS}
-            our_costs = {n: c for n, c in reached.items() if n not in PEERS}
-            if peer_costs and our_costs:
-                bp, bo = min(peer_costs, key=peer_costs.get), min(our_costs, key=our_costs.get)
-                row.update(best_peer=bp, best_ours=bo, ratio=our_costs[bo] / peer_costs[bp],
-                           ratio_pid=min((c for n, c in our_costs.items() if "PID" in n), default=np.nan) / peer_costs[bp])
-                ev = {n: c for n, c in row["evaluations"].items() if c is not None}
-                ev_peer = min(c for n, c in ev.items() if n in PEERS)
-                ev_ours = min(c for n, c in ev.items() if n not in PEERS)
-                row["ratio_evaluations"] = ev_ours / ev_peer
+            row = dict(problem=label, target=target)
             table.append(row)
-            if "ratio" in row:
-                print(f"  {label:22s} error {target:.0e}: ours {row['best_ours']} {1e3 * our_costs[bo]:.2f} ms, "
-                      f"peer {row['best_peer']} {1e3 * peer_costs[bp]:.2f} ms: ratio {row['ratio']:.2f} "
-                      f"(best PID {row['ratio_pid']:.2f}; evaluations {row['ratio_evaluations']:.2f})", flush=True)
-            else:
-                print(f"  {label:22s} error {target:.0e}: not reached by both sides {sorted(reached)}", flush=True)
+            if target < prob.get("resolution", 0.0):
+                row["below_resolution"] = True
+                print(f"  {label:22s} error {target:.0e}: below the reference's resolution {prob['resolution']:.0e}")
+                continue
+            for key in ("run_s", "steps", "evaluations"):
+                row[key] = {n: cost_at([r for r in records if r["problem"] == label and r["solver"] == n], target, key)
+                            for n in names}
+            side = lambda key, peer: {n: c for n, c in row[key].items() if c is not None and (n in PEERS) == peer}
+            theirs, ours = side("run_s", True), side("run_s", False)
+            if not (theirs and ours):
+                print(f"  {label:22s} error {target:.0e}: not reached by both sides {sorted(theirs | ours)}", flush=True)
+                continue
+            bp, bo = min(theirs, key=theirs.get), min(ours, key=ours.get)
+            row.update(best_peer=bp, best_ours=bo, ratio=ours[bo] / theirs[bp],
+                       ratio_pid=min((c for n, c in ours.items() if "PID" in n), default=np.nan) / theirs[bp],
+                       ratio_evaluations=min(side("evaluations", False).values())
+                       / min(side("evaluations", True).values()))
+            show(f"{label}, error {target:.0e}", row, "best_ours", "best_peer", "ratio", "ratio_pid", "ratio_evaluations")
     return table
 
 
 def plot_work_precision(records, problems, path):
     """Run time (top) and gradient evaluations (bottom, free of the machine's load) against the
     final error, one column per problem."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, len(problems), figsize=(5.5 * len(problems), 8), squeeze=False)
-    for column, label in enumerate(problems):
-        for row, (key, unit) in enumerate((("run_s", "run time [s]"), ("evaluations", "gradient evaluations"))):
-            ax = axes[row, column]
-            for name in sorted({r["solver"] for r in records}):
-                pts = [r for r in records if r["problem"] == label and r["solver"] == name and "error" in r]
-                style = "--" if name in PEERS else "-"
-                ax.loglog([p["error"] for p in pts], [p[key] for p in pts], style, marker="o", ms=3, label=name)
-            ax.set_title(label)
-            ax.set_xlabel("final error (max-norm)")
-            ax.set_ylabel(unit)
-            ax.invert_xaxis()
-            ax.grid(True, which="both", alpha=0.3)
-    axes[0, 0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
-# ---------------------------------------------------------------- (c) long runs
+    with figure(path, ncols=len(problems), nrows=2, size=(5.5, 4), dpi=90) as axes:
+        for column, label in enumerate(problems):
+            for row, (key, unit) in enumerate((("run_s", "run time [s]"), ("evaluations", "gradient evaluations"))):
+                ax = axes[row, column]
+                for name in sorted({r["solver"] for r in records}):
+                    pts = [r for r in records if r["problem"] == label and r["solver"] == name and "error" in r]
+                    ax.loglog([p["error"] for p in pts], [p[key] for p in pts], "--" if name in PEERS else "-",
+                              marker="o", ms=3, label=name)
+                ax.set(title=label, xlabel="final error (max-norm)", ylabel=unit)
+                ax.invert_xaxis()
+                ax.grid(True, which="both", alpha=0.3)
+        axes[0, 0].legend(fontsize=7)
 
 
 def kepler_density(q0):
@@ -322,24 +262,22 @@ def energy_run(kind, method, H, q0, p0, T, max_steps):
     PIDController (knob: tol) or uniform steps (knob: h; fixed steps, every state saved: the
     run a user makes to watch the energy)."""
 
-    def uniform(knob, q0, p0):
-        n = int(np.ceil(T / knob))
-        sol = gj.integrate(H, q0, p0, method=method, h=knob, n_steps=n, error_estimate=False)
-        return (jax.vmap(H)(sol.q, sol.p) - H(q0, p0), sol.t, sol.stats["num_accepted_steps"], sol.status,
+    def energies(sol, q, p, t):
+        return (jax.vmap(H)(q, p) - H(q0, p0), t, sol.stats["num_accepted_steps"], sol.status,
                 sol.stats["num_newton_iterations"])
 
     def run(knob):
         if kind == "uniform":
-            return lambda q0, p0: uniform(knob, q0, p0)
+            def uniform(q0, p0):
+                sol = gj.integrate(H, q0, p0, method=method, h=knob, n_steps=int(np.ceil(T / knob)), error_estimate=False)
+                return energies(sol, sol.q, sol.p, sol.t)
+            return uniform
         if kind.startswith("TimeTransform"):
-            s = kepler_density(q0) if kind.endswith("r^1.5") else None
-            kw = dict(h=knob, controller=gj.TimeTransform(s))
+            kw = dict(h=knob, controller=gj.TimeTransform(kepler_density(q0) if kind.endswith("r^1.5") else None))
         else:
             kw = dict(h=1e-2, controller=gj.PIDController(knob, knob))
         sol = gj.integrate(H, q0, p0, method=method, t1=T, max_steps=max_steps, dense=True, error_estimate=False, **kw)
-        q, p = sol.dense.view(sol.dense.z)
-        H0 = H(q0, p0)
-        return jax.vmap(H)(q, p) - H0, sol.dense.t, sol.stats["num_accepted_steps"], sol.status, sol.stats["num_newton_iterations"]
+        return energies(sol, *sol.dense.view(sol.dense.z), sol.dense.t)
 
     return run
 
@@ -379,14 +317,10 @@ def long_runs(orbits, quick, e=0.9):
             if kind == "uniform":  # the number of steps is static
                 compile_s, fixed = compiled(run(knob), q0, p0)
                 call = lambda _: fixed(q0, p0)
-            run_s = np.inf
-            for _ in range(2):  # the best of two calls: a program's first call also allocates its buffers
-                t0 = time.perf_counter()
-                dH, t, steps, status, newton = jax.block_until_ready(call(jnp.asarray(knob)))
-                run_s = min(run_s, time.perf_counter() - t0)
-            dH, t = np.abs(np.asarray(dH)), np.asarray(t)
-            ok = np.isfinite(t)
-            dH, t = dH[ok], t[ok]
+            dH, t, steps, status, newton = call(jnp.asarray(knob))
+            run_s = best_time(call, jnp.asarray(knob), repeat=1, min_s=0.0)  # the second call: the first allocates
+            ok = np.isfinite(np.asarray(t))
+            dH, t = np.abs(np.asarray(dH))[ok], np.asarray(t)[ok]
             rec = dict(kind=kind, knob=knob, status=int(status), steps=int(steps), newton_iterations=int(newton),
                        compile_s=compile_s, run_s=run_s, us_per_step=1e6 * run_s / int(steps),
                        **energy_quarters(t, dH, T))
@@ -401,9 +335,7 @@ def long_runs(orbits, quick, e=0.9):
             rec["max_energy_error_per_orbit"] = [float(np.max(per_orbit_max[i:i + block]))
                                                  for i in range(0, orbits, block)]
             curves[(kind, knob)] = per_orbit_max
-            print(f"  {kind:14s} knob {knob:7.0e}: status {rec['status']} steps {rec['steps']:8d} run {run_s:7.2f} s "
-                  f"max|dH| {rec['max_energy_error']:.2e} last/first quarter {rec['last_over_first']:.2f} "
-                  f"(compile {compile_s:.1f} s)", flush=True)
+            show(kind, rec)
     summary = []
     for rec in records:
         if not rec["kind"].startswith("TimeTransform"):
@@ -416,10 +348,7 @@ def long_runs(orbits, quick, e=0.9):
                             steps=rec["steps"], uniform_run_s=cost, uniform_steps=steps,
                             ratio=None if cost is None else rec["run_s"] / cost,
                             ratio_steps=None if steps is None else rec["steps"] / steps))
-        uniform = "not reached" if cost is None else (f"{cost:.2f} s, ratio {rec['run_s'] / cost:.3f}; "
-                                                      f"{steps:.0f} steps, ratio {rec['steps'] / steps:.3f}")
-        print(f"  {rec['kind']} h = {rec['knob']}: max|dH| {rec['max_energy_error']:.2e} in {rec['run_s']:.2f} s; "
-              f"uniform steps: {uniform}", flush=True)
+        show(f"{rec['kind']} h = {rec['knob']} against uniform steps", summary[-1])
     return dict(orbits=orbits, e=e, method="cG(4)+Gauss 4", runs=records, tt_vs_uniform=summary), curves
 
 
@@ -429,104 +358,20 @@ def plot_energy(curves, path, e):
         for (kind, knob), per_orbit in curves.items():
             ax.semilogy(np.arange(1, per_orbit.size + 1), np.maximum(per_orbit, 1e-17), styles[kind], lw=1.0,
                         label=f"{kind} {knob:g}")
-        ax.set_xlabel("orbit")
-        ax.set_ylabel("max |H - H0| over the orbit's nodes")
-        ax.set_title(f"Kepler e = {e}, cG(4)+Gauss 4")
+        ax.set(xlabel="orbit", ylabel="max |H - H0| over the orbit's nodes", title=f"Kepler e = {e}, cG(4)+Gauss 4")
         ax.legend(fontsize=7, ncol=2)
-
-
-# ---------------------------------------------------------------- (d) the estimate's share
-
-
-def estimate_share(label, prob, k, tol):
-    """Time per attempt of a PID run against the embedded estimate of its elements alone."""
-    method = gauss(k)
-    H, q0, p0, T = prob["H"], prob["q0"], prob["p0"], prob["T"]
-    max_steps = 20_000
-
-    def pid(q0, p0):
-        return gj.integrate(H, q0, p0, method=method, h=1e-3 * T, t1=T, controller=gj.PIDController(tol, tol),
-                            max_steps=max_steps, dense=True)
-
-    compile_pid, call_pid = compiled(pid, q0, p0)
-    sol = call_pid(q0, p0)
-    assert int(sol.status) == 0
-    steps, rejected = int(sol.stats["num_accepted_steps"]), int(sol.stats["num_rejected_steps"])
-    run_pid = best_time(call_pid, q0, p0, repeat=5)
-    t, z = (np.asarray(x) for x in (sol.dense.t, sol.dense.z))
-    h = jnp.asarray(np.diff(t[: steps + 1]))
-    zs = jnp.asarray(z[:steps])
-    Ws = element_polynomials(method, H, zs, h)
-    d = q0.shape[0]
-
-    def one(z, W, h):
-        return embedded_error(H, z[:d], z[d:], W, h)
-
-    def scanned(zs, Ws, h):
-        return jax.lax.scan(lambda c, x: (jnp.maximum(c, jnp.max(jnp.abs(one(*x)))), None),
-                            jnp.zeros((), zs.dtype), (zs, Ws, h))[0]
-
-    _, call_scan = compiled(scanned, zs, Ws, h)
-    est_scan = best_time(call_scan, zs, Ws, h, repeat=5)
-    vmapped = lambda zs, Ws, h: jnp.max(jnp.abs(jax.vmap(one)(zs, Ws, h)))
-    _, call_vmap = compiled(vmapped, zs, Ws, h)
-    est_vmap = best_time(call_vmap, zs, Ws, h, repeat=5)
-    # in the loop: the same run with `extra` more estimates per attempt (same steps, decisions unchanged)
-    extra = 4
-    original = adaptive.embedded_error
-
-    def padded(H, q0, p0, W, h):
-        e = original(H, q0, p0, W, h)
-        more = sum(jnp.sum(original(H, q0, p0, W, h * (1 + i * jnp.finfo(h.dtype).eps))) for i in range(1, extra + 1))
-        return e + jnp.where(jnp.abs(more) > 1e300, 1.0, 0.0)  # depends on the extra estimates, changes nothing
-
-    H_padded = lambda q, p: H(q, p)  # a new function: no cached trace of the unpatched loop
-    adaptive.embedded_error = padded
-    try:
-        plain = lambda H: lambda q0, p0: gj.integrate(H, q0, p0, method=method, h=1e-3 * T, t1=T,
-                                                      controller=gj.PIDController(tol, tol), max_steps=max_steps,
-                                                      error_estimate=False).stats["num_accepted_steps"]
-        compile_padded, call_padded = compiled(plain(H_padded), q0, p0)
-    finally:
-        adaptive.embedded_error = original
-    _, call_plain = compiled(plain(H), q0, p0)
-    assert int(call_padded(q0, p0)) == int(call_plain(q0, p0)) == steps
-    run_plain, run_padded = np.inf, np.inf
-    for _ in range(4):  # interleaved: the machine's load changes between them
-        run_plain = min(run_plain, best_time(call_plain, q0, p0, repeat=5, min_s=0.3))
-        run_padded = min(run_padded, best_time(call_padded, q0, p0, repeat=5, min_s=0.3))
-    attempts = steps + rejected
-    per_attempt = run_plain / attempts
-    rec = dict(
-        problem=label, method=f"cG({k})+Gauss {k}", tol=tol, steps=steps, rejected=rejected,
-        newton_pid=int(sol.stats["num_newton_iterations"]),
-        compile_pid_s=compile_pid, compile_padded_s=compile_padded, run_pid_dense_s=run_pid, run_pid_s=run_plain,
-        run_padded_s=run_padded, extra_estimates=extra, pid_us_per_attempt=1e6 * per_attempt,
-        share_in_loop=(run_padded - run_plain) / extra / run_plain,
-        estimate_scan_us=1e6 * est_scan / steps, estimate_vmap_us=1e6 * est_vmap / steps,
-        share_scan=est_scan / steps / per_attempt, share_vmap=est_vmap / steps / per_attempt,
-        estimate_matches_run=bool(np.isclose(float(call_scan(zs, Ws, h)), float(sol.error_estimate), rtol=1e-6)),
-    )
-    print(f"  {label} {rec['method']}: {attempts} attempts, PID {rec['pid_us_per_attempt']:.1f} us/attempt; "
-          f"estimate alone {rec['estimate_scan_us']:.2f} us (scan), {rec['estimate_vmap_us']:.2f} us (vmap); "
-          f"share: in the loop {100 * rec['share_in_loop']:.1f} %, alone {100 * rec['share_scan']:.1f} % / "
-          f"{100 * rec['share_vmap']:.1f} %", flush=True)
-    return rec
-
-
-# ---------------------------------------------------------------- main
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="thinner sweeps, 100 orbits in part c (a smoke pass)")
-    parser.add_argument("--only", nargs="+", choices=("a", "b", "c", "d"), default=("a", "b", "c", "d"))
+    parser.add_argument("--only", nargs="+", choices=("a", "b", "c"), default=("a", "b", "c"))
     parser.add_argument("--orbits", type=int, default=None, help="orbits of part c (default 1000, --quick 100)")
     parser.add_argument("--e", type=float, default=0.9, choices=sorted(LONG_KNOBS),
                         help="eccentricity of part c (default 0.9)")
     parser.add_argument("--name", default=None)
     opts = parser.parse_args()
-    suffix = ("_quick" if opts.quick else "") + ("" if len(opts.only) == 4 else "_" + "".join(opts.only))
+    suffix = ("_quick" if opts.quick else "") + ("" if len(opts.only) == 3 else "_" + "".join(opts.only))
     name = opts.name or "adaptive" + suffix
     results, start = dict(parts=list(opts.only)), time.perf_counter()
     problems = {}
@@ -547,14 +392,6 @@ def main():
         print(f"c: Kepler e = {opts.e}, {orbits} orbits", flush=True)
         results["long"], curves = long_runs(orbits, opts.quick, opts.e)
         plot_energy(curves, RESULTS / f"{name}_energy.png", opts.e)
-    if "d" in opts.only:
-        print("d: the estimate's share of a step", flush=True)
-        results["estimate_share"] = [
-            estimate_share("Kepler e=0.9", kepler_problem(0.9), 6, 1e-8),
-            estimate_share("Kepler e=0.9", kepler_problem(0.9), 8, 1e-8),
-            estimate_share("Pythagorean 3-body", dict(H=three_body, q0=jnp.asarray([1.0, 3.0, -2.0, -1.0, 1.0, -1.0]),
-                                                      p0=jnp.zeros(6), T=5.0), 6, 1e-8),
-        ]
     results["total_s"] = time.perf_counter() - start
     write(name, results)
 

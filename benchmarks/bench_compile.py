@@ -1,6 +1,6 @@
 """Time to the first answer: where a run's first call goes, beside diffrax's equivalent.
 
-    python benchmarks/bench_compile.py [--only kepler fput cli] [--name compile]
+    python -m benchmarks compile [--only kepler fput] [--kinds KIND ...] [--name compile]
 
 For every public entry point and run kind, on Kepler (d = 2, cG(6) + Gauss 6, one orbit) and on
 the beta-FPUT chain (N = 64, cG(4) + Gauss 4), the first call of a fresh function in one
@@ -11,31 +11,22 @@ program's size: StableHLO operations of the lowered module (``lowered.as_text()`
 ``tests/test_program.py`` budgets) and the kernels (fusions) XLA compiled, which set the
 compile time (about 4-8 ms each on this CPU). diffrax's equivalent runs in the same process,
 with the same state and span: Dopri8 with a constant step or with its PID controller (and
-Tsit5 for the run kinds the issue compared).
-
-``cli``: ``galerkin-jax run`` in a fresh process, cold and again with its compilation cache
-(the wall time of the command, and the compile time it prints). ``tour``: the README's tour in
-fresh processes, without and with the cache. Results: ``results/compile.json``.
+Tsit5 for the run kinds the issue compared). Results: ``results/compile.json``. (The CLI and
+the README's tour with the compilation cache, parts ``cli`` and ``tour``: a study at 8777906.)
 """
 
 import argparse
-import os
-import pathlib
 import re
-import subprocess
-import sys
-import tempfile
 import time
 
-import jax
-import jax.numpy as jnp
-import numpy as np
+from _common import best_time, show, write  # first: one BLAS thread
 
-import galerkin_jax as gj
-from galerkin_jax import scenes
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(__file__))
-from _common import write  # noqa: E402
+import galerkin_jax as gj  # noqa: E402
+from galerkin_jax import scenes  # noqa: E402
 
 _EVENTS = {"compile": "/jax/core/compile/backend_compile_duration"}
 _durations = []
@@ -63,34 +54,22 @@ def first_call(make, sized=True):
     jax.block_until_ready(fn(*args))
     total = time.perf_counter() - t0
     compile_s = sum(_durations)
-    runs = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        runs.append(time.perf_counter() - t0)
-    run = min(runs)
+    run = best_time(fn, *args, repeat=3, min_s=0.0)
     ops, kernels = program_size(fn, *args) if sized else (None, None)
     return dict(total=total, trace_and_lower=max(total - compile_s - run, 0.0), compile=compile_s, run=run,
                 stablehlo_ops=ops, kernels=kernels)
 
 
-def kepler():
-    e, a = 0.6, 1.0
-    H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
-    q0 = np.array([a * (1 - e), 0.0])
-    p0 = np.array([0.0, np.sqrt((1 + e) / (a * (1 - e)))])
-    return H, q0, p0, 2 * np.pi, gj.CG(6, gj.gauss_legendre(6)), 1e-10
-
-
-def fput():
-    scene = scenes.fput(64)
-    return scene.H, scene.q0, scene.p0, 10.0, gj.CG(4, gj.gauss_legendre(4)), 1e-8
+PROBLEMS = {  # (scene, span, method, tolerance)
+    "kepler": lambda: (scenes.kepler(0.6), 2 * np.pi, gj.CG(6, gj.gauss_legendre(6)), 1e-10),
+    "fput": lambda: (scenes.fput(64), 10.0, gj.CG(4, gj.gauss_legendre(4)), 1e-8),
+}
 
 
 def ours(problem):
     """``{kind: make}``: the library's entry points on ``problem``."""
-    H, q0, p0, T, method, tol = problem
-    q0, p0 = jnp.asarray(q0), jnp.asarray(p0)
+    scene, T, method, tol = problem
+    H, q0, p0 = scene.H, jnp.asarray(scene.q0), jnp.asarray(scene.p0)
     n = 1000
     h = T / n
     pid = lambda: gj.PIDController(rtol=tol, atol=tol)
@@ -128,8 +107,8 @@ def peers(problem):
     """``{kind: {peer: make}}``: diffrax's equivalents (the same H, state and span)."""
     import diffrax
 
-    H, q0, p0, T, _, tol = problem
-    n = 1000
+    scene, T, _, tol = problem
+    H, q0, p0, n = scene.H, jnp.asarray(scene.q0), jnp.asarray(scene.p0), 1000
     dH = jax.grad(H, argnums=(0, 1))
     term = diffrax.ODETerm(lambda t, y, args: (dH(*y)[1], -dH(*y)[0]))
     ts = jnp.linspace(0.0, T, 21)
@@ -140,7 +119,7 @@ def peers(problem):
                                                   max_steps=4096, **kw)
 
     def made(fn, *args):
-        return lambda: (fn, args or (jnp.asarray(q0), jnp.asarray(p0)))
+        return lambda: (fn, args or (q0, p0))
 
     def step(solver):
         def one(q0, p0):
@@ -163,7 +142,7 @@ def peers(problem):
         "integrate PID": {"Dopri8": made(solve(dopri8, True)), "Tsit5": made(solve(tsit5, True))},
         "integrate save_at + events": {"Dopri8": made(solve(dopri8, True, saveat=diffrax.SaveAt(ts=ts), event=event))},
         "integrate dense": {"Dopri8": made(solve(dopri8, False, saveat=diffrax.SaveAt(dense=True)))},
-        "sweep": {"Dopri8": made(vsolve, jnp.stack([jnp.asarray(q0)] * 4), jnp.stack([jnp.asarray(p0)] * 4))},
+        "sweep": {"Dopri8": made(vsolve, jnp.stack([q0] * 4), jnp.stack([p0] * 4))},
         "grad fixed": {"Dopri8": made(grad(dopri8, False))},
         "grad PID": {"Dopri8": made(grad(dopri8, True)), "Tsit5": made(grad(tsit5, True))},
     }
@@ -186,68 +165,19 @@ def problem_part(name, problem, kinds=None):
             dopri8 = row["diffrax Dopri8"]
             row["ratio_to_dopri8"] = mine / (dopri8["trace_and_lower"] + dopri8["compile"])
         rows[kind] = row
-        peer_text = "  ".join(f"{k[8:]} {v['trace_and_lower'] + v['compile']:.2f} s" for k, v in row.items()
-                              if k.startswith("diffrax"))
-        ratio = f"  ratio {row['ratio_to_dopri8']:.2f}" if "ratio_to_dopri8" in row else ""
-        size = row["galerkin_jax"]
-        print(f"{name:7s} {kind:28s} trace+lower {mine - size['compile']:5.2f} s  compile {size['compile']:5.2f} s  "
-              f"ops {size['stablehlo_ops']}  kernels {size['kernels']}  | {peer_text}{ratio}", flush=True)
-    return rows
-
-
-def cli_part():
-    """``galerkin-jax run`` in fresh processes: without the cache, then twice with it."""
-    rows = {}
-    with tempfile.TemporaryDirectory() as folder:
-        for label, cache in (("cold", "off"), ("cache, first", "on"), ("cache, again", "on")):
-            env = dict(os.environ, GALERKIN_JAX_CACHE=os.path.join(folder, "cache") if cache == "on" else "")
-            t0 = time.perf_counter()
-            done = subprocess.run([sys.executable, "-m", "galerkin_jax", "run", "--out", os.path.join(folder, "out")],
-                                  capture_output=True, text=True, env=env, check=True)
-            wall = time.perf_counter() - t0
-            printed = re.search(r"compile ([\d.]+) s, run ([\d.]+) s", done.stdout)
-            rows[label] = dict(wall=wall, compile=float(printed.group(1)) if printed else None)
-            print(f"cli     {label:28s} wall {wall:5.2f} s  compile (printed) {rows[label]['compile']}", flush=True)
-    return rows
-
-
-_TOUR = re.compile(r"### From Python\n\n```python\n(.*?)```", re.S)
-
-
-def tour_part():
-    """The README's tour (its first Python block) in fresh processes: without the compilation
-    cache, then twice with it (``gj.use_compilation_cache``, a new folder): the wall time from
-    the first import to its last result."""
-    readme = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
-    code = ("import time\nstart = time.perf_counter()\n" + _TOUR.search(readme).group(1)
-            + "\njax.block_until_ready((sol, dense, q, q1, A, h))\nprint('tour', time.perf_counter() - start)\n")
-    rows = {}
-    with tempfile.TemporaryDirectory() as folder:
-        for label, cache in (("no cache", ""), ("cache, first", folder), ("cache, again", folder)):
-            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                                  env=dict(os.environ, GALERKIN_JAX_CACHE=cache))
-            rows[label] = float(done.stdout.split()[-1])
-            print(f"tour    {label:28s} wall {rows[label]:5.2f} s", flush=True)
+        show(f"{name} {kind}", row["galerkin_jax"] | {f"{k} compile": v["trace_and_lower"] + v["compile"]
+                                                     for k, v in row.items() if k.startswith("diffrax")}
+             | {"ratio_to_dopri8": row.get("ratio_to_dopri8")})
     return rows
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--only", nargs="*", default=["kepler", "fput", "cli", "tour"])
+    parser.add_argument("--only", nargs="+", choices=list(PROBLEMS), default=list(PROBLEMS))
     parser.add_argument("--kinds", nargs="*", help="run kinds to measure (default: all), e.g. 'integrate PID'")
     parser.add_argument("--name", default="compile")
     options = parser.parse_args()
-    jax.config.update("jax_enable_x64", True)
-    results = {}
-    if "kepler" in options.only:
-        results["kepler"] = problem_part("kepler", kepler(), options.kinds)
-    if "fput" in options.only:
-        results["fput"] = problem_part("fput", fput(), options.kinds)
-    if "cli" in options.only:
-        results["cli"] = cli_part()
-    if "tour" in options.only:
-        results["tour"] = tour_part()
-    write(options.name, results)
+    write(options.name, {name: problem_part(name, PROBLEMS[name](), options.kinds) for name in options.only})
 
 
 if __name__ == "__main__":

@@ -1,60 +1,38 @@
 """Gradients through runs whose steps a controller chooses: paid for by the steps taken.
 
-    python benchmarks/bench_gradients.py [--only max_steps peers long fixed kept products members scheduler]
-        [--name gradients]
-    python benchmarks/bench_gradients.py --only fixed --baseline 5bbacdc --name gradients_fixed
+    python -m benchmarks gradients [--only max_steps peers long members fixed] [--name gradients]
 
-max_steps: the beta-FPUT chain of 6 masses (12 unknowns; ``scenes.fput``), cG(4) + Gauss 4,
-    PIDController(1e-6, 1e-6) to T = 10 (66 accepted steps), d/dq0 of |q(T)|^2: the forward run
-    and the gradient (best of several, compiled apart), XLA's temporary buffers of the compiled
-    gradient (``memory_analysis``) and the peak resident memory of a process that computes it
-    once (``ru_maxrss``), against ``max_steps``; diffrax Tsit5 + PID (its default adjoint,
-    RecursiveCheckpointAdjoint) beside it.
+max_steps: the beta-FPUT chain of 6 masses, cG(4) + Gauss 4, PIDController(1e-6, 1e-6) to T = 10,
+    d/dq0 of |q(T)|^2: forward and gradient time, XLA's temporary buffers of the compiled gradient
+    and the peak resident memory of a fresh process that computes it, against ``max_steps``;
+    diffrax Tsit5 + PID (its default adjoint, RecursiveCheckpointAdjoint) beside it.
 peers: Kepler e = 0.9 over one orbit (cG(6) + Gauss 7) and FPUT N = 64 (cG(4) + Gauss 4, T = 10):
-    forward and gradient time of a PID run (max_steps = 10^5; the gradient also at the default
-    max_steps, 4096, without and with ``checkpoint=True``), its final error against a reference
-    (the same run at a tolerance 100 times tighter), and diffrax Dopri8 + PID at the tolerances
-    that bracket that error (its default adjoint).
-long: the gradient's memory at max_steps = 10^6 for FPUT N = 64 (128 unknowns), from the
-    compiled program, and the time and memory of one gradient through ~10^5 steps.
-products: inside one backward element of the peers part's FPUT run: a residual, a forward-mode
-    and a transposed product with its Jacobian, the element's vector-Jacobian product.
-kept: the peers part's gradient / forward ratios at the default max_steps against the number of
-    elements whose roots a gradient keeps (``_adjoint.KEPT_ELEMENTS``), each in a fresh process.
-members: a controller's sweep over 8 tolerances (1e-4 to 1e-11, each member its own steps) of Kepler
-    e = 0.9 (the peers part's) and of the FPUT chain of 6 masses (the max_steps part's, PID, h0 =
-    0.05): d/dq0 of the sum of |q(T)|^2 (and its forward-mode product along ones), all members
-    at once (``vmap``) and with ``batch_size`` 1 and 4 (chunks one after another), beside the sum
-    of the members' gradients alone (``integrate``); compile and run times apart.
-scheduler: the peers part's gradient / forward ratios at the default max_steps in six fresh processes
-    with the default XLA flags and six with XLA's concurrency-optimised CPU scheduler off
-    (``SCHEDULER_FLAG``), alternately.
-equinox: reverse mode through equinox's checkpointed while loop against the adjoint's sweeps, on
-    the same 600 Kepler elements (cG(4) + Gauss 4, h = 0.01): compile, forward and gradient time
-    and XLA's temporary buffers.
-fixed: gradients through fixed steps (d/dq0 of |q_N|^2 + |p_N|^2): Kepler e = 0.5 over one orbit,
-    cG(6) + Gauss 6, 126 steps; the same with cG(2) + Gauss 3, h = 0.01, 2000 steps,
-    ``checkpoint=True``; FPUT N = 64, cG(4) + Gauss 4, h = 0.035, 286 steps. Compile and run
-    time of the forward run and of the gradient, each case in a fresh process, for this tree
-    and, with ``--baseline REF``, for the tree at git REF (checked out into a temporary
-    worktree): which fixed-step figures moved.
+    forward and gradient time of a PID run (max_steps 10^5; the gradient also at the default
+    max_steps, without and with ``checkpoint=True``), its final error against the same run at a
+    tolerance 100 times tighter, and diffrax Dopri8 + PID at the tolerance that reaches that error.
+long: the gradient's memory at max_steps = 10^6 for FPUT N = 64, and one gradient through ~10^5 steps.
+members: a controller's sweep over 8 tolerances (1e-4 .. 1e-11) of Kepler e = 0.9 and of the 6-mass
+    chain: d/dq0 of the sum of |q(T)|^2 (and a forward-mode product), all members at once and with
+    ``batch_size`` 1 and 4, beside the members' gradients alone; compile and run times apart.
+fixed: gradients through fixed steps (Kepler e = 0.5, cG(6), 126 steps; cG(2) + Gauss 3, 2000
+    steps, ``checkpoint=True``; FPUT N = 64, cG(4), 286 steps): forward and gradient, compile and run.
 """
 
 import argparse
 import json
-import os
 import pathlib
 import subprocess
 import sys
 import textwrap
 
-import jax
-import jax.numpy as jnp
-import numpy as np
+from _common import best_time, compiled, show, timed, write  # first: one BLAS thread
 
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from _common import best_time, chained_us, compiled, timed, write  # noqa: E402
+import diffrax  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
+import _peers as peers  # noqa: E402
 import galerkin_jax as gj  # noqa: E402
 from galerkin_jax import scenes  # noqa: E402
 
@@ -81,29 +59,18 @@ def peak_memory(case, max_steps, gradient=True):
 
 def fput_small(max_steps):
     scene = scenes.fput(6)
-    p0 = jnp.asarray(scene.p0)
-
-    def loss(q0):
-        sol = gj.integrate(scene.H, q0, p0, method=gj.CG(4, gj.gauss_legendre(4)), h=0.05, t1=10.0,
-                           controller=gj.PIDController(1e-6, 1e-6), max_steps=max_steps)
-        return jnp.sum(sol.q[-1] ** 2)
-
+    loss = lambda q0: jnp.sum(gj.integrate(scene.H, q0, jnp.asarray(scene.p0), method=gj.CG(4, gj.gauss_legendre(4)),
+                                           h=0.05, t1=10.0, controller=gj.PIDController(1e-6, 1e-6),
+                                           max_steps=max_steps).q[-1] ** 2)
     return loss, jnp.asarray(scene.q0)
 
 
 def fput_small_diffrax(max_steps):
-    import diffrax
-
     scene = scenes.fput(6)
-    p0 = jnp.asarray(scene.p0)
-    dH = jax.grad(scene.H, argnums=(0, 1))
-    term = diffrax.ODETerm(lambda t, y, args: (dH(*y)[1], -dH(*y)[0]))
-
-    def loss(q0):
-        sol = diffrax.diffeqsolve(term, diffrax.Tsit5(), 0.0, 10.0, 0.05, (q0, p0), max_steps=max_steps,
-                                  stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6))
-        return jnp.sum(sol.ys[0][-1] ** 2)
-
+    controller = diffrax.PIDController(rtol=1e-6, atol=1e-6)
+    z = lambda q0: jnp.concatenate([q0, jnp.asarray(scene.p0)])
+    loss = lambda q0: jnp.sum(peers.diffrax_solve(scene.H, 10.0, z(q0), diffrax.Tsit5(), 0.05, controller,
+                                                  max_steps)[0][:6] ** 2)
     return loss, jnp.asarray(scene.q0)
 
 
@@ -127,10 +94,8 @@ def max_steps_part():
                              forward_peak_mb=peak_memory(case, max_steps, gradient=False))
             row[name]["gradient_over_forward"] = row[name]["gradient_s"] / row[name]["forward_s"]
         rows.append(row)
-        ours, theirs = row["galerkin_jax"], row["diffrax Tsit5"]
-        print(f"max_steps {max_steps:8d}: ours gradient {1e3 * ours['gradient_s']:7.2f} ms ({ours['gradient_temp_mb']:6.2f} "
-              f"MB temp, peak {ours['peak_mb']:5.0f} MB), Tsit5 {1e3 * theirs['gradient_s']:7.2f} ms "
-              f"({theirs['gradient_temp_mb']:6.2f} MB, peak {theirs['peak_mb']:5.0f} MB)", flush=True)
+        for name in ("galerkin_jax", "diffrax Tsit5"):
+            show(f"max_steps {max_steps}, {name}", row[name])
     first, last = rows[1]["galerkin_jax"], rows[-1]["galerkin_jax"]
     return dict(scene="beta-FPUT, 6 masses, cG(4) + Gauss 4, PID 1e-6, T = 10", rows=rows,
                 gradient_time_1e6_over_4096=last["gradient_s"] / first["gradient_s"],
@@ -140,10 +105,9 @@ def max_steps_part():
 
 
 def kepler():
-    e = 0.9
-    H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
-    q0, p0 = jnp.array([1 - e, 0.0]), jnp.array([0.0, np.sqrt((1 + e) / (1 - e))])
-    return "Kepler e = 0.9, one orbit, cG(6) + Gauss 7", H, q0, p0, 2 * np.pi, gj.CG(6, gj.gauss_legendre(7)), 1e-8
+    scene = scenes.kepler(0.9)
+    return ("Kepler e = 0.9, one orbit, cG(6) + Gauss 7", scene.H, jnp.asarray(scene.q0), jnp.asarray(scene.p0),
+            2 * np.pi, gj.CG(6, gj.gauss_legendre(7)), 1e-8)
 
 
 def fput_large():
@@ -153,8 +117,6 @@ def fput_large():
 
 
 def peers_part():
-    import diffrax
-
     results = {}
     for problem in (kepler, fput_large):
         label, H, q0, p0, T, method, tol = problem()
@@ -166,39 +128,31 @@ def peers_part():
         error = float(np.max(np.abs(final.q[-1] - reference)))
         loss = lambda q0, **kwargs: jnp.sum(run(q0, tol, **kwargs).q[-1] ** 2)
         ours = dict(steps=int(final.stats["num_accepted_steps"]), final_error=error,
-                    forward_s=timed(lambda q0: run(q0, tol).q[-1], q0, repeat=20)[1],
-                    gradient_s=timed(jax.grad(loss), q0, repeat=20)[1],
-                    # the default max_steps (4096), and the fewest roots kept (``checkpoint=True``)
-                    gradient_default_max_steps_s=timed(jax.grad(lambda q0: loss(q0, max_steps=4096)), q0,
-                                                       repeat=20)[1],
-                    gradient_checkpoint_s=timed(jax.grad(lambda q0: loss(q0, max_steps=4096, checkpoint=True)), q0,
-                                                repeat=20)[1])
-        for key in ("gradient", "gradient_default_max_steps", "gradient_checkpoint"):
+                    forward_s=timed(lambda q0: run(q0, tol).q[-1], q0, repeat=20)[1])
+        # also at the default max_steps (4096), and with the fewest roots kept (``checkpoint=True``)
+        for key, kw in (("gradient", {}), ("gradient_default_max_steps", dict(max_steps=4096)),
+                        ("gradient_checkpoint", dict(max_steps=4096, checkpoint=True))):
+            ours[key + "_s"] = timed(jax.grad(lambda q0: loss(q0, **kw)), q0, repeat=20)[1]
             ours[key + "_over_forward"] = ours[key + "_s"] / ours["forward_s"]
-        dH = jax.grad(H, argnums=(0, 1))
-        term = diffrax.ODETerm(lambda t, y, args: (dH(*y)[1], -dH(*y)[0]))
-        peers = []
+        dopri8 = []
         for peer_tol in tol * 10.0 ** -np.arange(7):
-            solve = lambda q0: diffrax.diffeqsolve(term, diffrax.Dopri8(), 0.0, T, 0.01, (q0, p0), max_steps=100_000,
-                                                   stepsize_controller=diffrax.PIDController(rtol=peer_tol, atol=peer_tol))
-            sol = solve(q0)
-            peer_loss = lambda q0: jnp.sum(solve(q0).ys[0][-1] ** 2)
-            peers.append(dict(tol=float(peer_tol), steps=int(sol.stats["num_accepted_steps"]),
-                              final_error=float(np.max(np.abs(np.asarray(sol.ys[0][-1]) - reference))),
-                              forward_s=timed(lambda q0: solve(q0).ys[0][-1], q0)[1],
-                              gradient_s=timed(jax.grad(peer_loss), q0)[1]))
-            if peers[-1]["final_error"] <= ours["final_error"]:
+            controller = diffrax.PIDController(rtol=peer_tol, atol=peer_tol)
+            solve = lambda q0: peers.diffrax_solve(H, T, jnp.concatenate([q0, p0]), diffrax.Dopri8(), 0.01, controller,
+                                                   100_000)
+            z1, _, accepted, _ = solve(q0)
+            peer_loss = lambda q0: jnp.sum(solve(q0)[0][: q0.size] ** 2)
+            dopri8.append(dict(tol=float(peer_tol), steps=int(accepted),
+                               final_error=float(np.max(np.abs(np.asarray(z1[: q0.size]) - reference))),
+                               forward_s=timed(lambda q0: solve(q0)[0], q0)[1],
+                               gradient_s=timed(jax.grad(peer_loss), q0)[1]))
+            if dopri8[-1]["final_error"] <= ours["final_error"]:
                 break
-        best = peers[-1]  # the loosest tolerance whose error is at most ours (or the tightest tried)
-        results[label] = dict(galerkin_jax=ours, dopri8=peers, dopri8_at_same_error=best,
+        best = dopri8[-1]  # the loosest tolerance whose error is at most ours (or the tightest tried)
+        results[label] = dict(galerkin_jax=ours, dopri8=dopri8, dopri8_at_same_error=best,
                               gradient_ratio_to_dopri8=ours["gradient_s"] / best["gradient_s"])
-        print(f"{label}: ours {ours['steps']} steps, error {ours['final_error']:.1e}, forward "
-              f"{1e3 * ours['forward_s']:.2f} ms, gradient {1e3 * ours['gradient_s']:.2f} ms "
-              f"({ours['gradient_over_forward']:.2f}x; at max_steps 4096 "
-              f"{ours['gradient_default_max_steps_over_forward']:.2f}x, with checkpoint=True "
-              f"{ours['gradient_checkpoint_over_forward']:.2f}x); Dopri8 at tol {best['tol']:g} (error "
-              f"{best['final_error']:.1e}) gradient {1e3 * best['gradient_s']:.2f} ms: ratio "
-              f"{results[label]['gradient_ratio_to_dopri8']:.2f}", flush=True)
+        show(label, ours)
+        show(f"{label}, Dopri8 at the same error", results[label] | best, "tol", "final_error", "gradient_s",
+             "gradient_ratio_to_dopri8")
     return results
 
 
@@ -216,196 +170,30 @@ def long_part():
     gradient_s, gradient_temp_mb = gradient_figures(lambda q0: jnp.sum(run(q0).q[-1] ** 2), q0, repeat=1)
     out.update(scene=label + ", PID 1e-6", span=span, steps=int(run(q0).stats["num_accepted_steps"]),
                gradient_s=gradient_s, gradient_temp_mb=gradient_temp_mb)
-    steps = out["steps"]
-    print(f"long: {steps} steps, gradient {out['gradient_s']:.1f} s, {out['gradient_temp_mb']:.1f} MB temp; at max_steps "
-          f"10^6 {out['gradient_temp_mb_at_max_steps_1000000']:.1f} MB", flush=True)
+    show("long", out)
     return out
 
 
-_FIXED = textwrap.dedent("""
-    import json, sys, time, timeit
-    sys.path.insert(0, {tree!r})
-    import jax, jax.numpy as jnp, numpy as np
-    jax.config.update("jax_enable_x64", True)
-    import galerkin_jax as gj
-    from galerkin_jax import scenes
-    assert gj.__file__.startswith({tree!r}), gj.__file__
-    case = {case!r}
-    if case.startswith("kepler"):
-        H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
-        q0, p0 = jnp.array([0.5, 0.0]), jnp.array([0.0, 3.0 ** 0.5])
-        k, rule, h, n, extra = ((6, gj.gauss_legendre(6), 2 * np.pi / 126, 126, {{}}) if case == "kepler"
-                                else (2, gj.gauss_legendre(3), 0.01, 2000, dict(checkpoint=True)))
-    else:
-        scene = scenes.fput(64)
-        H, q0, p0 = scene.H, jnp.asarray(scene.q0), jnp.asarray(scene.p0)
-        k, rule, h, n, extra = 4, gj.gauss_legendre(4), 0.035, 286, {{}}
-    method = gj.CG(k, rule)
-    def loss(q0):
-        sol = gj.integrate(H, q0, p0, method=method, h=h, n_steps=n, save_every=n, **extra)
-        return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.p[-1] ** 2)
-    out = {{}}
-    for name, f in (("forward", loss), ("gradient", jax.grad(loss))):
-        t0 = time.perf_counter()
-        call = jax.jit(f).lower(q0).compile()
-        out[name + "_compile_s"] = time.perf_counter() - t0
-        jax.block_until_ready(call(q0))
-        out[name + "_s"] = min(timeit.repeat(lambda: jax.block_until_ready(call(q0)), number=1, repeat=20))
-    out["gradient"] = np.asarray(jax.grad(loss)(q0)).tolist()
-    print(json.dumps(out))
-""")
-
-
-def fixed_part(baseline=None):
-    """Fixed-step gradients of this tree and, with ``baseline``, of the tree at that git ref."""
-    import shutil
-    import tempfile
-
-    here = pathlib.Path(__file__).resolve().parents[1]
-    trees = {"this tree": here}
-    scratch = None
-    if baseline is not None:
-        scratch = pathlib.Path(tempfile.mkdtemp()) / "baseline"
-        subprocess.run(["git", "-C", str(here), "worktree", "add", "--detach", str(scratch), baseline],
-                       check=True, capture_output=True)
-        trees[f"baseline {baseline}"] = scratch
+def fixed_part():
+    """Gradients through fixed steps, d/dq0 of |q_N|^2 + |p_N|^2: compile and run time of the
+    forward run and of the gradient, and the gradient itself (a later tree must keep its digits;
+    two trees compare by their result files, each records its commit)."""
+    kepler, chain = ((s.H, jnp.asarray(s.q0), jnp.asarray(s.p0)) for s in (scenes.kepler(0.5), scenes.fput(64)))
+    cases = {"kepler": (*kepler, gj.CG(6, gj.gauss_legendre(6)), 2 * np.pi / 126, 126, {}),
+             "kepler_checkpoint": (*kepler, gj.CG(2, gj.gauss_legendre(3)), 0.01, 2000, dict(checkpoint=True)),
+             "fput64": (*chain, gj.CG(4, gj.gauss_legendre(4)), 0.035, 286, {})}
     results = {}
-    try:
-        for case in ("kepler", "kepler_checkpoint", "fput64"):
-            results[case] = {}
-            for label, tree in trees.items():
-                code = _FIXED.format(tree=str(tree), case=case)
-                done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-                results[case][label] = json.loads(done.stdout.strip().splitlines()[-1])
-                row = results[case][label]
-                print(f"{case:18s} {label:18s} forward {1e3 * row['forward_s']:8.3f} ms (compile "
-                      f"{row['forward_compile_s']:5.1f} s), gradient {1e3 * row['gradient_s']:8.3f} ms (compile "
-                      f"{row['gradient_compile_s']:5.1f} s)", flush=True)
-            if baseline is not None:
-                new, old = results[case]["this tree"], results[case][f"baseline {baseline}"]
-                results[case]["gradient_new_over_baseline"] = new["gradient_s"] / old["gradient_s"]
-                results[case]["gradient_compile_new_over_baseline"] = (new["gradient_compile_s"]
-                                                                       / old["gradient_compile_s"])
-                difference = np.max(np.abs(np.subtract(new["gradient"], old["gradient"])))
-                results[case]["gradients_differ_by"] = float(difference / np.max(np.abs(old["gradient"])))
-    finally:
-        if scratch is not None:
-            subprocess.run(["git", "-C", str(here), "worktree", "remove", "--force", str(scratch)], check=False)
-            shutil.rmtree(scratch.parent, ignore_errors=True)
+    for case, (H, q0, p0, method, h, n, extra) in cases.items():
+        def loss(q0):
+            sol = gj.integrate(H, q0, p0, method=method, h=h, n_steps=n, save_every=n, **extra)
+            return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.p[-1] ** 2)
+
+        row = results[case] = {}
+        for name, f in (("forward", loss), ("gradient", jax.grad(loss))):
+            row[name + "_compile_s"], row[name + "_s"] = timed(f, q0, repeat=20)
+        row["gradient"] = np.asarray(jax.grad(loss)(q0)).tolist()
+        show(case, row)
     return results
-
-
-_RATIOS = textwrap.dedent("""
-    import json, sys
-    sys.path.insert(0, {here!r})
-    import jax, jax.numpy as jnp
-    jax.config.update("jax_enable_x64", True)
-    import bench_gradients as b
-    import galerkin_jax as gj
-    from galerkin_jax import _adjoint
-    from _common import best_time, compiled
-    if {kept} is not None:
-        _adjoint.KEPT_ELEMENTS = {kept}
-    out = {{}}
-    for problem in {problems}:
-        label, H, q0, p0, T, method, tol = getattr(b, problem)()
-        run = lambda q0: gj.integrate(H, q0, p0, method=method, h=0.01, t1=T, controller=gj.PIDController(tol, tol))
-        forward = best_time(compiled(lambda q0: run(q0).q[-1], q0)[1], q0, repeat={repeat})
-        gradient = best_time(compiled(jax.grad(lambda q0: jnp.sum(run(q0).q[-1] ** 2)), q0)[1], q0, repeat={repeat})
-        out[problem] = dict(forward_s=forward, gradient_s=gradient, gradient_over_forward=gradient / forward)
-    print(json.dumps(out))
-""")
-
-
-def ratios(problems, kept=None, repeat=40, env=None):
-    """The gradient / forward ratios of the peers part's runs at the default max_steps, in one
-    fresh process that times ``problems`` (names of this module's scenes) in order, with
-    ``_adjoint.KEPT_ELEMENTS`` = ``kept`` (None: the library's) and the environment ``env``."""
-    code = _RATIOS.format(here=str(pathlib.Path(__file__).parent), kept=kept, problems=tuple(problems), repeat=repeat)
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
-    return json.loads(done.stdout.strip().splitlines()[-1])
-
-
-def kept_part():
-    """The gradient / forward ratio of the peers part's runs at the default max_steps (4096)
-    against the number of elements whose roots a gradient keeps (``_adjoint.KEPT_ELEMENTS``; 0:
-    sqrt(max_steps) = 64, as ``checkpoint=True``), each in a fresh process."""
-    results = {}
-    for problem in ("kepler", "fput_large"):
-        results[problem] = {}
-        for kept in (0, 256, 512, 1024, 4096):
-            results[problem][kept] = ratios([problem], kept)[problem]
-            ratio = results[problem][kept]["gradient_over_forward"]
-            print(f"{problem:10s} kept {kept:5d}: gradient / forward {ratio:.2f}", flush=True)
-    return results
-
-
-def products_part(calls=200):
-    """The costs inside one backward element of the peers part's FPUT N = 64 run (cG(4) + Gauss 4,
-    an element of h = 0.035 from its start, 512 unknowns, the Gauss-Seidel sweep residual), each
-    in ``calls`` chained calls in one compiled program: a residual, a forward-mode product (JVP)
-    with its Jacobian, a product with its transpose (linearised once, the products alone), and
-    the whole element taken backwards (``jax.vjp`` of the element map through the implicit
-    solve, in the start state)."""
-    from galerkin_jax import _adjoint, _march
-
-    _, H, q0, p0, _, method, _ = fput_large()
-    h, args = jnp.asarray(0.035), None
-    options = _march.solver_options(method)
-    fn = _march.element_residual(H, options.solver.sweep_dimension)
-    params = (method, q0, p0, h, args)
-    Z = _march.solve_element(method, H, q0, p0, h, args, options)[2]
-    z = jnp.concatenate([q0, p0])
-    spec = _adjoint.Spec(H=H, transform=None, options=options, max_steps=4096)
-
-    def cost(step, x):
-        return chained_us(lambda x: x + 1e-30 * step(x).reshape(x.shape), x, calls, repeat=20)
-
-    _, linear = jax.linearize(lambda Z: fn(Z, params), Z)
-    transposed = jax.linear_transpose(linear, Z)
-
-    def five_transposed(v):  # linearised once, as _tangent's Richardson iteration does
-        _, linear = jax.linearize(lambda Z: fn(Z, params), Z)
-        transposed = jax.linear_transpose(linear, Z)
-        for _ in range(5):
-            v = transposed(v)[0]
-        return v
-
-    def backward(lam):
-        element = lambda z: _adjoint._element(spec, H, jax.lax.stop_gradient((method, args)), z, h, Z)[0]
-        return jax.vjp(element, z)[1](lam)[0]
-
-    # the products Richardson's iteration takes per element in the peers part's gradient, counted
-    # by a host callback in each product (``_tangent._iterated`` wrapped for this count alone)
-    from galerkin_jax import _tangent
-
-    count = dict(products=0, solves=0)
-    iterated = _tangent._iterated
-
-    def counting(matvec, b):
-        def counted(x):
-            jax.debug.callback(lambda: count.__setitem__("products", count["products"] + 1))
-            return matvec(x)
-
-        jax.debug.callback(lambda: count.__setitem__("solves", count["solves"] + 1))
-        return iterated(counted, b)
-
-    _tangent._iterated = counting
-    jax.clear_caches()  # a gradient compiled before in this process would not count
-    try:
-        run = lambda q0: gj.integrate(H, q0, p0, method=method, h=0.01, t1=10.0,
-                                      controller=gj.PIDController(1e-8, 1e-8))
-        jax.block_until_ready(jax.jit(jax.grad(lambda q0: jnp.sum(run(q0).q[-1] ** 2)))(q0))
-    finally:
-        _tangent._iterated = iterated
-        jax.clear_caches()
-    out = dict(products_per_element=count["products"] / count["solves"], residual_us=cost(lambda Z: fn(Z, params), Z),
-               jvp_product_us=cost(lambda v: jax.jvp(lambda Z: fn(Z, params), (Z,), (v,))[1], Z),
-               transposed_product_us=cost(lambda v: transposed(v)[0], Z),
-               five_transposed_products_us=cost(five_transposed, Z),
-               backward_element_us=cost(backward, z))
-    print(", ".join(f"{key} {value:.2f}" for key, value in out.items()), flush=True)
-    return out
 
 
 def members_part(tolerances=tuple(10.0 ** -np.arange(4, 12))):
@@ -433,102 +221,26 @@ def members_part(tolerances=tuple(10.0 ** -np.arange(4, 12))):
         case["alone_gradient_sum_s"] = sum(case["alone_gradient_s"])
         for batch_size in (None, 1, 4):
             key = "vmap" if batch_size is None else f"batch_size_{batch_size}"
-            forward = timed(lambda x: loss(x, batch_size), q0s)
-            gradient = timed(jax.grad(lambda x: loss(x, batch_size)), q0s)
-            tangent = timed(lambda x: jax.jvp(lambda x: loss(x, batch_size), (x,), (jnp.ones_like(x),))[1], q0s)
-            case[key] = dict(forward_compile_s=forward[0], forward_s=forward[1], gradient_compile_s=gradient[0],
-                             gradient_s=gradient[1], tangent_compile_s=tangent[0], tangent_s=tangent[1])
-        print(label, json.dumps(case), flush=True)
+            f = lambda x: loss(x, batch_size)
+            case[key] = {}
+            for what, fn in (("forward", f), ("gradient", jax.grad(f)),
+                             ("tangent", lambda x: jax.jvp(f, (x,), (jnp.ones_like(x),))[1])):
+                case[key][what + "_compile_s"], case[key][what + "_s"] = timed(fn, q0s)
+        show(label, case)
         results[label] = case
     return results
 
 
-# XLA's CPU scheduler that orders a program's operations for concurrency (on by default)
-SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
-
-
-def scheduler_part(processes=6):
-    """The peers part's runs at the default max_steps, each process computing Kepler's gradient
-    and then the chain's (as the peers part does), ``processes`` fresh processes with the
-    default XLA flags and as many with XLA's concurrency-optimised CPU scheduler off
-    (``SCHEDULER_FLAG``), alternately: whether a gradient's time depends on how XLA's runtime
-    spreads the loop bodies' small kernels over the threads."""
-    results = {"default": [], "scheduler_off": []}
-    for _ in range(processes):
-        for key, flags in (("default", ""), ("scheduler_off", SCHEDULER_FLAG)):
-            env = dict(os.environ, XLA_FLAGS=" ".join(filter(None, [os.environ.get("XLA_FLAGS", ""), flags])))
-            results[key].append(ratios(["kepler", "fput_large"], repeat=20, env=env))  # the peers part's order
-            print(key, {k: round(v["gradient_over_forward"], 2) for k, v in results[key][-1].items()}, flush=True)
-    for key in ("default", "scheduler_off"):
-        for problem in ("kepler", "fput_large"):
-            measured = sorted(r[problem]["gradient_over_forward"] for r in results[key])
-            results[f"{key}_{problem}_ratios"] = dict(min=measured[0], median=float(np.median(measured)),
-                                                      max=measured[-1])
-    return results
-
-
-def equinox_part(repeat=10):
-    """Reverse mode through equinox's checkpointed while loop (``equinox.internal.while_loop(
-    kind="checkpointed")``, as diffrax's RecursiveCheckpointAdjoint) against the adjoint's
-    sweeps, on the same elements: Kepler e = 0.6, cG(4) + Gauss 4, a constant h = 0.01 to t = 6
-    (600 elements), d/dq0 of |z(6)|^2. equinox: a loop of elements, each root found by the
-    library's solver (held: ``_adjoint._resolve``) and differentiated by the implicit function
-    theorem (``_adjoint._element``), ``max_steps`` 1024; galerkin_jax: ``integrate(...,
-    save_at=[6])``, whose loop also keeps the error estimate and the counters."""
-    import equinox.internal as eqxi
-    from galerkin_jax import _adjoint
-    from galerkin_jax._march import solver_options
-    from galerkin_jax._solve import initial_matrix
-    H = lambda q, p: 0.5 * (p @ p) - 1.0 / jnp.sqrt(q @ q)
-    e, h, T, n = 0.6, 0.01, 6.0, 600
-    q0, p0 = jnp.array([1 - e, 0.0]), jnp.array([0.0, np.sqrt((1 + e) / (1 - e))])
-    method = gj.CG(4, gj.gauss_legendre(4))
-    options = solver_options(method, None, None, None)
-    spec = _adjoint.Spec(H, None, options, 1024)
-
-    def checkpointed(q0):
-        theta, z0, guess = (method, None), jnp.concatenate([q0, p0]), method.initial_guess(q0, p0)
-        held = jax.lax.stop_gradient
-
-        def body(c):
-            k, z, matrix, previous = c
-            Z, matrix, _ = _adjoint._resolve(H, held(theta), held(z), h, held(previous), matrix, options)
-            return k + 1, _adjoint._element(spec, H, theta, z, jnp.asarray(h), Z)[0], matrix, (z, Z, jnp.asarray(h),
-                                                                                              jnp.ones((), bool))
-
-        c = (0, z0, initial_matrix(guess, options), (z0, guess, jnp.asarray(h), jnp.zeros((), bool)))
-        return jnp.sum(eqxi.while_loop(lambda c: c[0] < n, body, c, max_steps=1024, kind="checkpointed")[1] ** 2)
-
-    def sweeps(q0):
-        sol = gj.integrate(H, q0, p0, method=method, h=h, t1=T, save_at=jnp.array([T]))
-        return jnp.sum(sol.q[-1] ** 2) + jnp.sum(sol.p[-1] ** 2)
-
-    results = {}
-    for name, loss in (("galerkin_jax sweeps", sweeps), ("equinox checkpointed", checkpointed)):
-        compile_s, call = compiled(jax.grad(loss), q0)
-        forward_compile_s, forward = compiled(loss, q0)
-        results[name] = dict(gradient=[float(x) for x in call(q0)], compile_s=compile_s,
-                             forward_compile_s=forward_compile_s, gradient_s=best_time(call, q0, repeat=repeat),
-                             forward_s=best_time(forward, q0, repeat=repeat),
-                             temp_mb=call.memory_analysis().temp_size_in_bytes / 1e6)
-        print(name, {k: v for k, v in results[name].items() if k != "gradient"}, flush=True)
-    return results
-
-
-PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "fixed": fixed_part, "kept": kept_part,
-         "products": products_part, "members": members_part, "scheduler": scheduler_part, "equinox": equinox_part}
+PARTS = {"max_steps": max_steps_part, "peers": peers_part, "long": long_part, "members": members_part,
+         "fixed": fixed_part}
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--only", nargs="*", default=list(PARTS))
+    parser.add_argument("--only", nargs="+", choices=list(PARTS), default=list(PARTS))
     parser.add_argument("--name", default="gradients")
-    parser.add_argument("--baseline", default=None,
-                        help="a git ref whose fixed-step gradients the 'fixed' part also times")
     options = parser.parse_args()
-    jax.config.update("jax_enable_x64", True)
-    parts = dict(PARTS, fixed=lambda: fixed_part(options.baseline))
-    write(options.name, {part: parts[part]() for part in options.only})
+    write(options.name, {part: PARTS[part]() for part in options.only})
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Untuned moderate systems (issue 37, item 1): galerkin_jax against diffrax and the integrators
 a user of each field would write, at a largest relative energy error of 1e-6, 1e-8 and 1e-10.
 
-    python benchmarks/bench_moderate.py [--quick] [--only LJ13 LJ55 Morse13 Morse55 Plummer32 Chain10]
+    python -m benchmarks moderate [--quick] [--only LJ13 LJ55 Morse13 Morse55 Plummer32 Chain10]
 
 The systems (``_moderate.py``, where each is described with its start and seed): Lennard-Jones
 and Morse (rho = 6) clusters of 13 and 55 atoms from their relaxed Mackay icosahedra with
@@ -13,104 +13,62 @@ j = 1..10, the same for every solver: every run is cut into ten segments whose e
 land on (fixed steps: a tenth of them each; controlled runs: a run to T / 10 per segment, the
 next one's first step the mean step of the last, the first's 1e-3 T / 10).
 
-The solvers: galerkin_jax cG(k) + Gauss k (k = 3, 4, 6) at fixed steps, cG(4), cG(6) with a
-PIDController (rtol = atol), and cG(3), cG(4) at fixed steps iterating to 1e-10 of the unknowns
-instead of their round-off (``SolverOptions(tolerance=1e-10)``); on the separable systems its
-explicit elements (``EXPLICIT``): Stormer-Verlet (``GalerkinVI(1, trapezoid)``), McLachlan's and
-Kahan and Li's compositions of it and Blanes and Moan's RKN splittings; diffrax Tsit5 and Dopri8,
-fixed steps and PID (rtol = atol); velocity Verlet and Yoshida's fourth-order triple jump of it
-(separable systems), the implicit midpoint rule (fixed-point iteration to round-off) and its
-triple jump (the chain, where no explicit symplectic splitting applies), written here in plain
-JAX (``lax.fori_loop``). No
-TimeTransform: the softened Plummer sphere has no close encounters to follow, and with its
-default s (second derivatives of H in the solve) a first try compiled in 58 s and took 16 s
-for 15 steps at h_tau = 1 (error 5e-2).
+The solvers (``solver_list``): galerkin_jax cG(k) + Gauss k at fixed steps, with a
+PIDController and iterating to 1e-10 instead of round-off; its explicit elements on the
+separable systems (``EXPLICIT``); diffrax Tsit5 and Dopri8, fixed steps and PID; velocity Verlet
+and its triple jump (separable systems), the implicit midpoint rule and its triple jump (the
+chain), in plain JAX (``_peers``). No TimeTransform: the softened Plummer sphere has no close
+encounters to follow (with its default s a first try compiled in 58 s; docs/performance.md).
 
-For each solver and accuracy the cheapest run that meets it: the knob (steps per segment or
-the tolerance) on a grid of ratio 2^(1/4) (steps) or 10^(1/4) (tolerances, at most 1e-2),
-searched from a start (``Solver.start``) by predictions from the error's measured slope, down
-to the knob below the first that meets it. One compilation per solver and system serves the
-search (the knob traced; galerkin_jax's fixed steps through a stand-in, ``cg_fixed_search``);
-a knob whose run is predicted to take more than ``--cap`` seconds is not run (recorded as not
-reached, with the prediction). Each cheapest run is then compiled ahead of time (galerkin_jax's
-fixed steps: ``integrate(n_steps=n)``, its own compilation, for the k within 1.5x of the best k
-in the search) and timed as the best of several calls, twice, minutes apart; compile time apart.
+For each solver and accuracy the cheapest run that meets it (``cheapest``): the knob on a grid
+of ratio 2^(1/4) (steps) or 10^(1/4) (tolerances), searched by predictions from the error's
+measured slope, one compilation per solver and system (the knob traced; fixed steps through a
+stand-in, ``cg_fixed(search=True)``); a run predicted to take more than ``--cap`` seconds is recorded
+as not reached. Each cheapest run is then compiled ahead of time (``Solver.final``) and timed
+as the best of several calls, twice, minutes apart; compile time apart.
 
 Writes results/moderate.json (every run) and results/moderate.md (the tables, also printed);
-``--quick`` (short spans, small systems, a few solvers; it also counts the calls of H per
-residual by a callback, ``count_calls``) and ``--only`` add a suffix to these names unless
-``--name`` is given. ``--gradients`` only measures one gradient of each system's H, alone and
-vmapped over k states (``gradient_costs``, results/moderate_gradients.json); ``--split`` where an
-element's time goes, fields, the residual's algebra, the solver's own work (``element_split``,
-results/moderate_split.json).
+``--quick`` (short spans, small systems, a few solvers) and ``--only`` add a suffix to these
+names unless ``--name`` is given.
 """
 
-import os
+import argparse
+import dataclasses
+import functools
+import math
+import time
+from typing import Callable, NamedTuple
 
-for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
-    os.environ[_var] = "1"  # as bench_peers: one BLAS thread for everyone
-
-import argparse  # noqa: E402
-import dataclasses  # noqa: E402
-import math  # noqa: E402
-import pathlib  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from typing import Callable  # noqa: E402
+from _common import best_time, compiled, machine, markdown_table, show, write  # first: one BLAS thread
 
 import diffrax  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-
 import _moderate as systems  # noqa: E402
 import _peers as peers  # noqa: E402
 import galerkin_jax as gj  # noqa: E402
-from _common import RESULTS, best_time, chained_us, compiled, machine, write  # noqa: E402
 
 SAVES = 10  # the energy is measured at t = j T / SAVES, j = 0..SAVES
 LEVELS = (1e-6, 1e-8, 1e-10)
 MAX_STEPS = 200_000  # a controlled segment's attempts
 
 
-# ---------------------------------------------------------------- the systems
-
-
 def system_list(quick):
     """The systems of a full run (name -> factory), or of ``--quick``: smaller, shorter."""
-    if quick:
-        return {
-            "LJ13": lambda: systems.lennard_jones(13, T=5.0),
-            "Morse13": lambda: systems.morse(13, T=5.0),
-            "Plummer16": lambda: systems.plummer(16, T=2.0),
-            "Chain5": lambda: systems.pendulum_chain(5, T=5.0),
-        }
-    return {
-        "LJ13": lambda: systems.lennard_jones(13, T=50.0),
-        "LJ55": lambda: systems.lennard_jones(55, T=10.0),
-        "Morse13": lambda: systems.morse(13, T=50.0),
-        "Morse55": lambda: systems.morse(55, T=10.0),
-        "Plummer32": lambda: systems.plummer(32, T=10.0),
-        "Chain10": lambda: systems.pendulum_chain(10, T=20.0),
-    }
+    lj, morse, plummer, chain = ((systems.lennard_jones, "LJ"), (systems.morse, "Morse"), (systems.plummer, "Plummer"),
+                                 (systems.pendulum_chain, "Chain"))
+    chosen = ([(lj, 13, 5.0), (morse, 13, 5.0), (plummer, 16, 2.0), (chain, 5, 5.0)] if quick else [
+        (lj, 13, 50.0), (lj, 55, 10.0), (morse, 13, 50.0), (morse, 55, 10.0), (plummer, 32, 10.0), (chain, 10, 20.0)])
+    return {f"{name}{n}": functools.partial(f, n, T=T) for (f, name), n, T in chosen}
 
 
-# ---------------------------------------------------------------- runs
-#
-# Every run is ``run(q0, p0, knob) -> Out`` (galerkin_jax's fixed steps also ``build(system, knob)``
-# -> ``run(q0, p0) -> Out``, the knob static): the states at the SAVES + 1 save times and its counts.
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass
-class Out:
-    """A run's saved states (shape (SAVES + 1, d) each), status (0: success), accepted and
-    rejected steps, field evaluations (of DH, or of dV/dq for the splittings, at one state;
-    galerkin_jax's counted from its iterations, ``evaluations``) and iterations (galerkin_jax:
-    ``num_newton_iterations``; the midpoint rules: fixed-point updates; else 0)."""
+class Out(NamedTuple):
+    """What every run returns (``run(system, q0, p0, knob)``): the states at the SAVES + 1 save
+    times (shape (SAVES + 1, d) each), status (0: success), accepted and rejected steps, field
+    evaluations (of DH, or of dV/dq for the explicit ones, at one state) and iterations
+    (galerkin_jax's ``num_newton_iterations``; the midpoint rules' fixed-point updates; else 0)."""
 
     q: jax.Array
     p: jax.Array
@@ -140,129 +98,89 @@ def counts(status=0, steps=0, rejected=0, evaluations=0, iterations=0):
     return tuple(jnp.asarray(x).astype(jnp.int32) for x in (status, steps, rejected, evaluations, iterations))
 
 
-# galerkin_jax
-
-
-def cg_fixed(k, tolerance=0.0):
-    """cG(k) + Gauss k at ``n = SAVES * m`` fixed steps, every m-th state saved: ``integrate(...,
-    n_steps=n, save_every=m)``, a static knob (one compilation per m). Evaluations: ``evaluations``.
-    ``tolerance``: ``SolverOptions.tolerance`` (0: iterate to round-off)."""
-    method = gj.CG(k, gj.gauss_legendre(k))
-    solver = gj.SolverOptions(tolerance=tolerance)
-
-    def build(system, m):
-        n = SAVES * m
-
-        def run(q0, p0):
-            sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=m,
-                               error_estimate=False, solver=solver)
-            it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
-            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, evaluations(system, k, it, steps), it))
-
-        return run
-
-    return build
-
-
 def evaluations(system, k, iterations, attempts):
     """galerkin_jax's field evaluations, counted from its iterations: k (one per Gauss point) per
     residual, one residual per iteration and one per attempt (the start's). On states of more
     than 8 degrees of freedom a residual is the Gauss-Seidel sweep's two halves, dH/dq and
-    dH/dp, two calls of H (``count_calls`` checks it): for a separable H the dH/dp half needs no
-    gradient of V, so it counts once; for the chain each half is a gradient of H, so twice."""
-    halves = 2 if system.V is None and system.q0.size > 8 else 1
-    return k * halves * (iterations + attempts)
+    dH/dp, two calls of H (counted by a callback at 8777906): for a separable H the dH/dp half
+    needs no gradient of V, so it counts once; for the chain each half is a gradient of H, twice."""
+    return k * (2 if system.V is None and system.q0.size > 8 else 1) * (iterations + attempts)
 
 
-def cg_fixed_search(k, tolerance=0.0):
-    """The search's stand-in for ``cg_fixed(k)``, compiled once: the same fixed steps with h
-    traced, through ``integrate(..., t1=T, save_at=...)`` (a while loop over elements of the
-    constant h, the states at the save times from the element polynomials, which end there).
-    Its errors equal the static runs' to six digits (LJ13, cG(4), seven step counts checked)."""
-    method = gj.CG(k, gj.gauss_legendre(k))
-    solver = gj.SolverOptions(tolerance=tolerance)
+def fixed(method, count, solver=None):
+    """galerkin_jax's ``method`` at ``n = SAVES * m`` fixed steps, every m-th state saved
+    (``integrate(..., n_steps=n, save_every=m)``: m static, a compilation each); field
+    evaluations ``count(system, iterations, steps)``. A ``Solver.final``."""
 
-    def make(system):
-        ts = jnp.linspace(0.0, system.T, SAVES + 1)
+    def run(system, q0, p0, m):
+        sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / (SAVES * m), n_steps=SAVES * m, save_every=m,
+                           error_estimate=False, solver=solver)
+        it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
+        return Out(sol.q, sol.p, *counts(sol.status, steps, 0, count(system, it, steps), it))
 
-        def run(q0, p0, m):
-            sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / (SAVES * m), t1=system.T, save_at=ts,
-                               max_steps=SAVES * MAX_STEPS, error_estimate=False, solver=solver)
-            it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
-            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, evaluations(system, k, it, steps), it))
+    return run
 
-        return run
 
-    return make
+def cg_fixed(k, tolerance=0.0, search=False):
+    """cG(k) + Gauss k at fixed steps, iterating to ``SolverOptions.tolerance`` (0: round-off).
+    With ``search`` the search's stand-in, compiled once: h traced, through ``integrate(...,
+    t1=T, save_at=...)`` (a while loop over elements of the constant h, the saved states from
+    the element polynomials, which end there; its errors equal the static runs' to six digits,
+    LJ13, cG(4), seven step counts checked)."""
+    method, solver = gj.CG(k, gj.gauss_legendre(k)), gj.SolverOptions(tolerance=tolerance)
+    count = lambda system, it, steps: evaluations(system, k, it, steps)
+    if not search:
+        return fixed(method, count, solver)
+
+    def run(system, q0, p0, m):
+        sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / (SAVES * m), t1=system.T,
+                           save_at=jnp.linspace(0.0, system.T, SAVES + 1), max_steps=SAVES * MAX_STEPS,
+                           error_estimate=False, solver=solver)
+        it, steps = sol.stats["num_newton_iterations"], sol.stats["num_accepted_steps"]
+        return Out(sol.q, sol.p, *counts(sol.status, steps, 0, count(system, it, steps), it))
+
+    return run
 
 
 def cg_pid(k):
-    """cG(k) + Gauss k with a PIDController, knob rtol = atol, one run to T / SAVES per segment.
-    Evaluations as ``evaluations`` per attempt, plus the controller's embedded estimate, one
-    per attempt."""
+    """cG(k) + Gauss k with a PIDController, knob rtol = atol, one run to T / SAVES per segment
+    (the next one's first step the last one's mean). Evaluations as ``evaluations`` per attempt,
+    plus the controller's embedded estimate, one per attempt."""
     method = gj.CG(k, gj.gauss_legendre(k))
 
-    def make(system):
+    def run(system, q0, p0, tol):
         span = system.T / SAVES
 
-        def run(q0, p0, tol):
-            def step_segment(q, p, h):
-                sol = gj.integrate(system.H, q, p, method=method, h=h, t1=span, controller=gj.PIDController(tol, tol),
-                                   max_steps=MAX_STEPS, error_estimate=False)
-                s = sol.stats
-                steps, rejected, it = s["num_accepted_steps"], s["num_rejected_steps"], s["num_newton_iterations"]
-                count = evaluations(system, k, it, steps + rejected) + steps + rejected
-                h_next = span / jnp.maximum(steps, 1)
-                return sol.q[-1], sol.p[-1], h_next, counts(sol.status, steps, rejected, count, it)
+        def step_segment(q, p, h):
+            sol = gj.integrate(system.H, q, p, method=method, h=h, t1=span, controller=gj.PIDController(tol, tol),
+                               max_steps=MAX_STEPS, error_estimate=False)
+            steps, rejected, it = (sol.stats[f"num_{x}"] for x in ("accepted_steps", "rejected_steps", "newton_iterations"))
+            count = evaluations(system, k, it, steps + rejected) + steps + rejected
+            return sol.q[-1], sol.p[-1], span / jnp.maximum(steps, 1), counts(sol.status, steps, rejected, count, it)
 
-            return segments(step_segment, q0, p0, jnp.asarray(1e-3 * span, q0.dtype))
+        return segments(step_segment, q0, p0, jnp.asarray(1e-3 * span, q0.dtype))
 
-        return run
-
-    return make
+    return run
 
 
-def explicit_fixed(method, forces):
+def explicit(method, forces, search=False):
     """An explicit element of galerkin_jax (``gj.structure`` finds every separable system
-    separable): a composition of Stormer-Verlet (``GalerkinVI(1, trapezoid)``) or a
-    ``Splitting``, at ``n = SAVES * m`` fixed steps, every m-th state saved: ``integrate(...,
-    n_steps=n, save_every=m)``, a static knob. Evaluations: ``forces`` gradients of V a step."""
+    separable), a composition of Stormer-Verlet or a ``Splitting``, at fixed steps (``fixed``),
+    ``forces`` gradients of V a step. With ``search`` the search's stand-in, compiled once (m
+    traced): ``gj.step`` in a ``fori_loop``, the same elements (each start's force computed
+    again, which the scan hands on: not timed, see ``choose_finals``)."""
+    if not search:
+        return fixed(method, lambda system, it, steps: forces * steps)
 
-    def build(system, m):
-        n = SAVES * m
+    def run(system, q0, p0, m):
+        def step_segment(q, p, c):
+            h = system.T / SAVES / m
+            q, p = jax.lax.fori_loop(0, m, lambda _, s: gj.step(system.H, *s, method=method, h=h), (q, p))
+            return q, p, c, counts(jnp.where(jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(p)), 0, 1), m, 0, forces * m)
 
-        def run(q0, p0):
-            sol = gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=m,
-                               error_estimate=False)
-            steps = sol.stats["num_accepted_steps"]
-            return Out(sol.q, sol.p, *counts(sol.status, steps, 0, forces * steps, sol.stats["num_newton_iterations"]))
+        return segments(step_segment, q0, p0, jnp.zeros((), q0.dtype))
 
-        return run
-
-    return build
-
-
-def explicit_search(method, forces):
-    """The search's stand-in for ``explicit_fixed``, compiled once (m traced): ``gj.step`` in a
-    ``fori_loop``, the same elements (the force at each element's start computed again, which
-    the scan hands on: not timed, see ``choose_finals``)."""
-
-    def make(system):
-        span = system.T / SAVES
-
-        def run(q0, p0, m):
-            h = span / m
-
-            def step_segment(q, p, c):
-                q, p = jax.lax.fori_loop(0, m, lambda _, s: gj.step(system.H, *s, method=method, h=h), (q, p))
-                status = jnp.where(jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(p)), 0, 1)
-                return q, p, c, counts(status, m, 0, forces * m)
-
-            return segments(step_segment, q0, p0, jnp.zeros((), q0.dtype))
-
-        return run
-
-    return make
+    return run
 
 
 # galerkin_jax's explicit candidates on separable H: (label, method, order, forces a step, start)
@@ -275,133 +193,60 @@ EXPLICIT = [
     ("Splitting blanes_moan_rkn6", gj.Splitting("blanes_moan_rkn6"), 6, 11, 1.0),
     ("Composition kahan_li8 of Verlet", gj.Composition(VERLET, "kahan_li8"), 8, 15, 1.5),
 ]
-
-
-# diffrax
-
 DIFFRAX_STAGES = {"Tsit5": 6, "Dopri8": 12}  # new field evaluations per attempt (first same as last)
 
 
 def diffrax_run(name, controlled):
-    """diffrax ``name`` (Tsit5 or Dopri8) on z = (q, p) with the field J DH (``_peers``): knob m
-    steps of T / (SAVES m) per segment (ConstantStepSize) or rtol = atol (PIDController)."""
+    """diffrax ``name`` (Tsit5 or Dopri8) on z = (q, p) (``_peers.diffrax_solve``): knob m steps
+    of T / (SAVES m) per segment (ConstantStepSize) or rtol = atol (PIDController)."""
     solver = getattr(diffrax, name)()
 
-    def make(system):
+    def run(system, q0, p0, knob):
         span, d = system.T / SAVES, system.q0.size
-        term = diffrax.ODETerm(lambda t, z, args: peers.hamiltonian_field(system.H)(z))
+        controller = diffrax.PIDController(rtol=knob, atol=knob) if controlled else diffrax.ConstantStepSize()
 
-        def run(q0, p0, knob):
-            controller = diffrax.PIDController(rtol=knob, atol=knob) if controlled else diffrax.ConstantStepSize()
-            first = 1e-3 * span if controlled else span / knob
+        def step_segment(q, p, dt0):
+            z, status, accepted, rejected = peers.diffrax_solve(system.H, span, jnp.concatenate([q, p]), solver, dt0,
+                                                                controller, MAX_STEPS)
+            dt = span / jnp.maximum(accepted, 1) if controlled else dt0
+            return z[:d], z[d:], dt, counts(status, accepted, rejected, DIFFRAX_STAGES[name] * (accepted + rejected) + 1)
 
-            def step_segment(q, p, dt0):
-                sol = diffrax.diffeqsolve(term, solver, 0.0, span, dt0, jnp.concatenate([q, p]),
-                                          saveat=diffrax.SaveAt(t1=True), stepsize_controller=controller,
-                                          max_steps=MAX_STEPS, throw=False)
-                accepted, rejected = sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"]
-                status = jnp.where(sol.result == diffrax.RESULTS.successful, 0, 1)
-                evaluations = DIFFRAX_STAGES[name] * (accepted + rejected) + 1
-                dt = span / jnp.maximum(accepted, 1) if controlled else dt0
-                z = sol.ys[-1]
-                return z[:d], z[d:], dt, counts(status, accepted, rejected, evaluations)
+        return segments(step_segment, q0, p0, jnp.asarray(1e-3 * span if controlled else span / knob, q0.dtype))
 
-            return segments(step_segment, q0, p0, jnp.asarray(first, q0.dtype))
-
-        return run
-
-    return make
-
-
-# explicit splitting (separable H = p^2 / 2m + V)
-
-TRIPLE_JUMP = (1 / (2 - 2 ** (1 / 3)), -(2 ** (1 / 3)) / (2 - 2 ** (1 / 3)), 1 / (2 - 2 ** (1 / 3)))
+    return run
 
 
 def verlet(weights=(1.0,)):
-    """Velocity Verlet (kick-drift-kick, the force reused from the step before: one gradient of V
-    per substep), composed with ``weights`` (Yoshida's triple jump: fourth order, three
-    gradients per step [Yoshida 1990]); knob m steps of T / (SAVES m) per segment."""
+    """Velocity Verlet (``_peers.verlet_step``: one gradient of V per substep), composed with
+    ``weights`` (Yoshida's triple jump: order 4); knob m steps of T / (SAVES m) per segment."""
 
-    def make(system):
-        span, force = system.T / SAVES, jax.grad(system.V)
-        inverse_mass = jnp.asarray(1.0 / system.masses)
+    def run(system, q0, p0, m):
+        step = peers.verlet_step(system.H, system.T / SAVES / m, weights)
 
-        def run(q0, p0, m):
-            h = span / m
+        def step_segment(q, p, f):
+            q, p, f = jax.lax.fori_loop(0, m, lambda _, c: step(c), (q, p, f))
+            return q, p, f, counts(0, m, 0, len(weights) * m)
 
-            def substep(c, w):
-                q, p, f = c
-                p = p - 0.5 * w * h * f
-                q = q + w * h * inverse_mass * p
-                f = force(q)
-                return q, p - 0.5 * w * h * f, f
+        return segments(step_segment, q0, p0, jax.grad(system.H)(q0, p0))
 
-            def one(_, c):
-                for w in weights:
-                    c = substep(c, w)
-                return c
-
-            def step_segment(q, p, f):
-                q, p, f = jax.lax.fori_loop(0, m, one, (q, p, f))
-                return q, p, f, counts(0, m, 0, len(weights) * m)
-
-            return segments(step_segment, q0, p0, force(q0))
-
-        return run
-
-    return make
+    return run
 
 
-# implicit midpoint (any H)
+def midpoint(weights=(1.0,)):
+    """The implicit midpoint rule (``_peers.gauss_step`` of one stage: fixed-point iteration to
+    round-off, each update one field evaluation; status 1 if a step took its cap), composed with
+    ``weights`` (the triple jump: order 4); knob m steps of T / (SAVES m) per segment."""
 
+    def run(system, q0, p0, m):
+        step, d, zero = peers.gauss_step(system.H, system.T / SAVES / m, 1, weights), q0.size, jnp.zeros((), jnp.int32)
 
-def midpoint(weights=(1.0,), max_iterations=50):
-    """The implicit midpoint rule z1 = z0 + h f((z0 + z1) / 2), f = J DH, solved by fixed-point
-    iteration on Z = z1 - z0 from the last step's Z to round-off (|dZ| <= 10 eps (1 + |z0|)),
-    the usual choice for non-stiff problems [Hairer, Lubich, Wanner, Sect. VIII.6]; composed
-    with ``weights`` (the triple jump: order 4). Symplectic and symmetric. Status 1 if a step
-    took ``max_iterations``; knob m steps of T / (SAVES m) per segment."""
+        def step_segment(q, p, Zs):
+            z, Zs, status, it = jax.lax.fori_loop(0, m, lambda _, c: step(c), (jnp.concatenate([q, p]), Zs, zero, zero))
+            return z[:d], z[d:], Zs, counts(status, m, 0, it, it)
 
-    def make(system):
-        span, field, d = system.T / SAVES, peers.hamiltonian_field(system.H), system.q0.size
+        return segments(step_segment, q0, p0, jnp.zeros((len(weights), 1, 2 * d), q0.dtype))
 
-        def run(q0, p0, m):
-            h = span / m
-
-            def substep(c, w):
-                z, Z, status, it = c
-                tol = 10 * jnp.finfo(z.dtype).eps * (1 + jnp.max(jnp.abs(z)))
-
-                def iterate(s):
-                    Z, _, i = s
-                    Z1 = w * h * field(z + 0.5 * Z)
-                    return Z1, jnp.max(jnp.abs(Z1 - Z)), i + 1
-
-                Z, _, i = jax.lax.while_loop(lambda s: (s[1] > tol) & (s[2] < max_iterations), iterate,
-                                             (Z, jnp.inf, 0))
-                return z + Z, Z, jnp.where(i >= max_iterations, 1, status), it + i
-
-            def one(_, c):
-                z, Zs, status, it = c
-                Zs_new = []
-                for j, w in enumerate(weights):  # each substep predicted by its own from the last step
-                    z, Z, status, it = substep((z, Zs[j], status, it), w)
-                    Zs_new.append(Z)
-                return z, jnp.stack(Zs_new), status, it
-
-            def step_segment(q, p, Zs):
-                z, Zs, status, it = jax.lax.fori_loop(0, m, one, (jnp.concatenate([q, p]), Zs, 0, 0))
-                return z[:d], z[d:], Zs, counts(status, m, 0, it, it)
-
-            return segments(step_segment, q0, p0, jnp.zeros((len(weights), 2 * d), q0.dtype))
-
-        return run
-
-    return make
-
-
-# ---------------------------------------------------------------- solvers
+    return run
 
 
 @dataclasses.dataclass(frozen=True)
@@ -415,13 +260,13 @@ class Solver:
             atol, i -> 10^(-i/4)); the cost grows with i.
         order: the error's expected exponent in the knob (steps: error ~ m^-order; tol: ~ tol^order),
             for the first predictions; later ones use the measured slope.
-        make: ``make(system) -> run(q0, p0, knob)``, compiled once per system (the knob traced).
+        make: ``run(system, q0, p0, knob) -> Out``, compiled once per system (the knob traced).
         start: where the search starts: a multiple c of the system's scale step h0 (steps: m =
             T / (SAVES c h0)) or the tolerance.
         applies: which systems it runs on.
-        final: ``final(system, knob) -> run(q0, p0)`` where the timed run differs from ``make``'s
-            (galerkin_jax's fixed steps: n_steps is static); each cheapest knob is compiled
-            and checked again with it.
+        final: ``run(system, q0, p0, knob)`` with the knob static, where the timed run differs
+            from ``make``'s (galerkin_jax's fixed steps: n_steps is static); each cheapest knob
+            is compiled and checked again with it.
     """
 
     name: str
@@ -438,18 +283,14 @@ def separable(system):
     return system.V is not None
 
 
-def non_separable(system):
-    return system.V is None
-
-
 def solver_list(quick):
     """The solvers; ``start`` is a multiple of the system's scale step h0 (fixed steps) or a
     tolerance. ``--quick`` keeps cG(4) fixed, cG(6) PID and every peer."""
-    cg = [Solver(f"cG({k})+Gauss {k}", True, "steps", 2 * k, cg_fixed_search(k), start, final=cg_fixed(k))
+    cg = [Solver(f"cG({k})+Gauss {k}", True, "steps", 2 * k, cg_fixed(k, search=True), start, final=cg_fixed(k))
           for k, start in ((3, 1.0), (4, 1.0), (6, 1.5))]
     pid = [Solver(f"cG({k})+Gauss {k} PID", True, "tol", 1.0, cg_pid(k), 1e-4) for k in (4, 6)]
     # iterating to 1e-10 of the unknowns instead of their round-off (``SolverOptions.tolerance``)
-    loose = [Solver(f"cG({k})+Gauss {k} tolerance 1e-10", True, "steps", 2 * k, cg_fixed_search(k, 1e-10), 1.0,
+    loose = [Solver(f"cG({k})+Gauss {k} tolerance 1e-10", True, "steps", 2 * k, cg_fixed(k, 1e-10, search=True), 1.0,
                     final=cg_fixed(k, 1e-10)) for k in (3, 4)]
     named_peers = [
         Solver("diffrax Tsit5", False, "steps", 5, diffrax_run("Tsit5", False), 0.5),
@@ -457,16 +298,16 @@ def solver_list(quick):
         Solver("diffrax Tsit5 PID", False, "tol", 1.0, diffrax_run("Tsit5", True), 1e-6),
         Solver("diffrax Dopri8 PID", False, "tol", 1.0, diffrax_run("Dopri8", True), 1e-6),
         Solver("velocity Verlet", False, "steps", 2, verlet(), 0.125, applies=separable),
-        Solver("Verlet triple jump (order 4)", False, "steps", 4, verlet(TRIPLE_JUMP), 0.5, applies=separable),
-        Solver("implicit midpoint", False, "steps", 2, midpoint(), 0.125, applies=non_separable),
-        Solver("midpoint triple jump (order 4)", False, "steps", 4, midpoint(TRIPLE_JUMP), 0.5,
-               applies=non_separable),
+        Solver("Verlet triple jump (order 4)", False, "steps", 4, verlet(peers.TRIPLE_JUMP), 0.5, applies=separable),
+        Solver("implicit midpoint", False, "steps", 2, midpoint(), 0.125, applies=lambda system: not separable(system)),
+        Solver("midpoint triple jump (order 4)", False, "steps", 4, midpoint(peers.TRIPLE_JUMP), 0.5,
+               applies=lambda system: not separable(system)),
     ]
-    explicit = [Solver(label, True, "steps", order, explicit_search(method, forces), start, applies=separable,
-                       final=explicit_fixed(method, forces)) for label, method, order, forces, start in EXPLICIT]
+    elements = [Solver(label, True, "steps", order, explicit(method, forces, search=True), start, applies=separable,
+                       final=explicit(method, forces)) for label, method, order, forces, start in EXPLICIT]
     if quick:
-        return [cg[1], pid[1]] + explicit + named_peers
-    return cg + pid + loose + explicit + named_peers
+        return [cg[1], pid[1]] + elements + named_peers
+    return cg + pid + loose + elements + named_peers
 
 
 SCALE_STEP = 0.05  # h0 of ``Solver.start``: a step that resolves every system's motion
@@ -482,9 +323,6 @@ def start_index(solver, system):
     if solver.kind == "steps":
         return max(4, round(4 * math.log2(system.T / SAVES / (SCALE_STEP * solver.start))))
     return max(LOOSEST_TOL, round(-4 * math.log10(solver.start)))
-
-
-# ---------------------------------------------------------------- the search
 
 
 class Probe:
@@ -504,7 +342,7 @@ class Probe:
         if i not in self.calls:
             knob = knob_value(self.solver, i)
             if self.solver.final is not None:
-                self.calls[i] = compiled(self.solver.final(self.system, knob), self.q0, self.p0)
+                self.calls[i] = compiled(functools.partial(self.solver.final, self.system, m=knob), self.q0, self.p0)
             else:
                 compile_s, call = self.searching()
                 self.calls[i] = (compile_s, lambda q0, p0, call=call, k=jnp.asarray(knob): call(q0, p0, k))
@@ -513,7 +351,7 @@ class Probe:
     def searching(self):
         if self.shared is None:
             start = knob_value(self.solver, start_index(self.solver, self.system))
-            self.shared = compiled(self.solver.make(self.system), self.q0, self.p0, jnp.asarray(start))
+            self.shared = compiled(functools.partial(self.solver.make, self.system), self.q0, self.p0, jnp.asarray(start))
         return self.shared
 
     def __call__(self, i):
@@ -521,7 +359,7 @@ class Probe:
         if i not in self.records:
             compile_s, call = self.searching()
             self.records[i] = self.record(i, lambda q0, p0: call(q0, p0, jnp.asarray(knob_value(self.solver, i))),
-                                          compile_s, show=len(self.records) == 0)
+                                          compile_s, first=len(self.records) == 0)
         return self.records[i]
 
     def final(self, i):
@@ -530,10 +368,12 @@ class Probe:
             return self(i)
         if i not in self.finals:
             compile_s, call = self.call(i)
-            self.finals[i] = dict(self.record(i, call, compile_s, show=True), final=True)
+            self.finals[i] = dict(self.record(i, call, compile_s, first=True), final=True)
         return self.finals[i]
 
-    def record(self, i, call, compile_s, show):
+    def record(self, i, call, compile_s, first):
+        """Run index i once (timed: first_s) and record its error and counts; print them (with the
+        compile time on a ``first`` run)."""
         t0 = time.perf_counter()
         out = jax.block_until_ready(call(self.q0, self.p0))
         first_s = time.perf_counter() - t0
@@ -542,9 +382,7 @@ class Probe:
                  error=error if math.isfinite(error) else math.inf, steps=int(out.steps), rejected=int(out.rejected),
                  evaluations=int(out.evaluations), iterations=int(out.iterations), compile_s=compile_s,
                  first_s=first_s)
-        print(f"    {self.solver.name:32s} knob {r['knob']:<10.4g} error {r['error']:.2e} steps {r['steps']:7d} "
-              f"rejected {r['rejected']:5d} status {r['status']} run {first_s:7.3f} s"
-              + (f" (compile {compile_s:.1f} s)" if show else ""), flush=True)
+        show(self.solver.name, r, *(() if first else ("knob", "error", "steps", "rejected", "status", "first_s")))
         return r
 
     def error(self, out):
@@ -616,12 +454,9 @@ def cheapest(probe, target, start, max_runs=12, max_jump=8):
     return passes, f"search ended after {max_runs} runs"
 
 
-# ---------------------------------------------------------------- one system
-
-
-def run_system(system, solvers, cap_s, quick):
+def run_system(system, solvers, cap_s):
     """Every solver at every level on ``system``: the cheapest run per level (found, not yet
-    timed; ``time_cheapest`` times them), and, with ``quick``, the calls of H checked."""
+    timed; ``time_cheapest`` times them)."""
     print(f"{system.name}: {system.description}", flush=True)
     result = dict(description=system.description, facts=system.facts, T=system.T, d=int(system.q0.size),
                   H0=float(system.H(jnp.asarray(system.q0), jnp.asarray(system.p0))), solvers={})
@@ -638,10 +473,6 @@ def run_system(system, solvers, cap_s, quick):
                 start = index
         result["solvers"][solver.name] = dict(ours=solver.ours, kind=solver.kind, levels=entry)
     choose_finals(result, probes)
-    cg4 = result["solvers"].get("cG(4)+Gauss 4", {}).get("levels", {}).get("1e-08", {}).get("index")
-    if quick and cg4 is not None:
-        result["calls_of_H"] = count_calls(system, 4, knob_value(probes["cG(4)+Gauss 4"].solver, cg4))
-        print(f"  calls of H: {result['calls_of_H']}", flush=True)
     return result, probes
 
 
@@ -654,11 +485,11 @@ def choose_finals(result, probes):
     search's while loop costs 1.4-1.8x the timed scan, alike for every k). The others keep the
     search's run, marked ``search_only``, and do not enter the comparison. The explicit elements
     (``EXPLICIT``, whose stand-in is another loop) are all timed."""
-    explicit = {label for label, *_ in EXPLICIT}
+    elements = {label for label, *_ in EXPLICIT}
     for level in (f"{x:.0e}" for x in LEVELS):
         entries = {name: r["levels"][level] for name, r in result["solvers"].items()
                    if probes[name].solver.final is not None and r["levels"][level]["index"] is not None
-                   and name not in explicit}
+                   and name not in elements}
         if not entries:
             continue
         first = {name: probes[name](e["index"])["first_s"] for name, e in entries.items()}
@@ -666,25 +497,6 @@ def choose_finals(result, probes):
         for name, entry in entries.items():
             if first[name] > FINAL_MARGIN * fastest:
                 entry.update(probes[name](entry["index"]), search_only=True)
-
-
-def count_calls(system, k, m):
-    """Calls of H in cG(k)'s first segment at m elements per segment, counted by a callback inside
-    H, per residual (iterations + elements): what ``evaluations`` assumes, checked (2 on states
-    of more than 8 degrees of freedom, the sweep's halves; 1 below)."""
-    calls = []
-
-    def counted(q, p):
-        jax.debug.callback(lambda: calls.append(1))
-        return system.H(q, p)
-
-    method = gj.CG(k, gj.gauss_legendre(k))
-    run = jax.jit(lambda q, p: gj.integrate(counted, q, p, method=method, h=system.T / (SAVES * m), n_steps=m,
-                                            save_every=m, error_estimate=False))
-    sol = jax.block_until_ready(run(jnp.asarray(system.q0), jnp.asarray(system.p0)))
-    iterations = int(sol.stats["num_newton_iterations"])
-    return dict(method=f"cG({k})+Gauss {k}", elements=m, calls=len(calls), iterations=iterations,
-                calls_per_residual=len(calls) / (iterations + m))
 
 
 def time_cheapest(result, probes, repeat, budget_s):
@@ -709,25 +521,16 @@ def time_cheapest(result, probes, repeat, budget_s):
 
 
 def summarize(result):
-    """Per level: the best galerkin_jax run, the best peer, the ratio of their run times."""
-    summary = {}
+    """Per level: the best galerkin_jax run, the best peer, the ratios of their run times and
+    field evaluations."""
+    result["summary"] = {}
     for level in (f"{x:.0e}" for x in LEVELS):
-        best = {}
-        for side in (True, False):
-            candidates = [(name, r["levels"][level]) for name, r in result["solvers"].items()
-                          if r["ours"] == side and r["levels"][level].get("run_s") is not None]
-            best[side] = min(candidates, key=lambda c: c[1]["run_s"], default=None)
-        ours, peer = best[True], best[False]
-        summary[level] = dict(
-            ours=None if ours is None else dict(solver=ours[0], **ours[1]),
-            peer=None if peer is None else dict(solver=peer[0], **peer[1]),
-            ratio=ours[1]["run_s"] / peer[1]["run_s"] if ours and peer else None,
-            evaluations_ratio=ours[1]["evaluations"] / peer[1]["evaluations"] if ours and peer else None,
-        )
-    result["summary"] = summary
-
-
-# ---------------------------------------------------------------- tables
+        ours, peer = (min((dict(solver=name, **r["levels"][level]) for name, r in result["solvers"].items()
+                           if r["ours"] == side and r["levels"][level].get("run_s") is not None),
+                          key=lambda c: c["run_s"], default=None) for side in (True, False))
+        both = ours is not None and peer is not None
+        result["summary"][level] = dict(ours=ours, peer=peer, ratio=ours["run_s"] / peer["run_s"] if both else None,
+                                        evaluations_ratio=ours["evaluations"] / peer["evaluations"] if both else None)
 
 
 def describe(run, kind_of):
@@ -749,26 +552,20 @@ def tables(results):
 
 
 def summary_table(results):
-    lines = ["| system | max \\|dH/H\\| | best galerkin_jax | best peer | ratio (time) | ratio (field evaluations) |",
-             "| --- | --- | --- | --- | --- | --- |"]
+    rows = []
     for name, result in results.items():
         kinds = {s: r["kind"] for s, r in result["solvers"].items()}
         for level, row in result["summary"].items():
-            ratio = "n/a" if row["ratio"] is None else f"{row['ratio']:.2f}x"
-            ev = "n/a" if row["evaluations_ratio"] is None else f"{row['evaluations_ratio']:.2f}x"
-            lines.append(f"| {name} | {level} | {describe(row['ours'], kinds)} | {describe(row['peer'], kinds)} | "
-                         f"{ratio} | {ev} |")
-    return "\n".join(lines)
+            rows.append([name, level, describe(row["ours"], kinds), describe(row["peer"], kinds),
+                         *("n/a" if row[k] is None else f"{row[k]:.2f}x" for k in ("ratio", "evaluations_ratio"))])
+    return markdown_table(["system", "max \\|dH/H\\|", "best galerkin_jax", "best peer", "ratio (time)",
+                           "ratio (field evaluations)"], rows)
 
 
 def detail_table(name, result):
-    header = " | ".join(f"{x:.0e}: ms / steps (+ rejected) / field evaluations" for x in LEVELS)
-    lines = [f"{name}: {result['description']}; d = {result['d']}, H0 = {result['H0']:.6g}", "",
-             f"| solver | {header} |", "| --- |" + " --- |" * len(LEVELS)]
-    for solver, r in result["solvers"].items():
-        cells = [cell(r["kind"], r["levels"][f"{x:.0e}"]) for x in LEVELS]
-        lines.append(f"| {solver} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    rows = [[s, *(cell(r["kind"], r["levels"][f"{x:.0e}"]) for x in LEVELS)] for s, r in result["solvers"].items()]
+    header = ["solver"] + [f"{x:.0e}: ms / steps (+ rejected) / field evaluations" for x in LEVELS]
+    return f"{name}: {result['description']}; d = {result['d']}, H0 = {result['H0']:.6g}\n\n" + markdown_table(header, rows)
 
 
 def cell(kind, e):
@@ -786,98 +583,12 @@ def cell(kind, e):
             f"({knob_text(kind, e)}{its}, {1e6 * e['run_s'] / e['evaluations']:.2f} us/eval)")
 
 
-# ---------------------------------------------------------------- the price of one gradient
-
-
-def gradient_costs(system, points=(3, 4, 6), calls=200):
-    """Microseconds per gradient at one state: of H (both halves, the diffrax field's cost) and
-    of dH/dq alone (a splitting's force, the sweep's q half), and dH/dq vmapped over k states
-    (a cG(k) residual's q half), per state. Each is ``calls`` chained calls in one compiled
-    loop, best of 5."""
-    q0, p0 = jnp.asarray(system.q0), jnp.asarray(system.p0)
-    grad_both, grad_q = jax.grad(system.H, argnums=(0, 1)), jax.grad(system.H, argnums=0)
-
-    def cost(step, q, p, states=1):
-        return chained_us(lambda c: step(*c), (q, p), calls) / states
-
-    def both(q, p):
-        dq, dp = grad_both(q, p)
-        return q + 1e-16 * dq, p + 1e-16 * dp
-
-    row = {"dH": cost(both, q0, p0), "dH/dq": cost(lambda q, p: (q + 1e-16 * grad_q(q, p), p), q0, p0)}
-    for k in points:
-        Q, P = jnp.stack([q0] * k), jnp.stack([p0] * k)
-        row[f"dH/dq at {k} states, per state"] = cost(lambda q, p: (q + 1e-16 * jax.vmap(grad_q)(q, p), p), Q, P, k)
-    print(f"  {system.name}: " + ", ".join(f"{key} {value:.2f} us" for key, value in row.items()), flush=True)
-    return row
-
-
-# steps of cG(3) over the span (each system's count at 1e-6, ``results/moderate.md``) for the split
-SPLIT_STEPS = {"LJ13": 1520, "LJ55": 270, "Morse13": 1810, "Morse55": 270, "Plummer32": 270, "Chain10": 320}
-
-
-def element_split(system, k=3, calls=200):
-    """Where an element's time goes (issue 37, item 2): cG(k) at n and 4 n fixed steps (n from
-    ``SPLIT_STEPS``) gives two (updates per element, µs per element) points, whose line is
-    ``fixed + updates x per_update``; one residual of the element equations (the sweep's, as the
-    solver iterates it) and its field evaluations alone (dH at k states, both halves on the
-    chain, dH/dq on the separable systems) are timed in ``calls`` chained calls in one program.
-    per_update - residual is the solver's own work per update (its checks and their kernel
-    launches), residual - field the polynomial algebra around the field."""
-    from galerkin_jax import _march
-
-    method = gj.CG(k, gj.gauss_legendre(k))
-    q0, p0 = jnp.asarray(system.q0), jnp.asarray(system.p0)
-    points = []
-    for n in (SPLIT_STEPS[system.name], 4 * SPLIT_STEPS[system.name]):
-        run = lambda q0, p0: gj.integrate(system.H, q0, p0, method=method, h=system.T / n, n_steps=n, save_every=n,
-                                          error_estimate=False)
-        _, call = compiled(run, q0, p0)
-        sol = call(q0, p0)
-        points.append((float(sol.stats["num_newton_iterations"]) / n, 1e6 * best_time(call, q0, p0, repeat=5) / n))
-    (u1, t1), (u2, t2) = points
-    per_update = (t1 - t2) / (u1 - u2)
-    fixed = t1 - u1 * per_update
-    options = _march.solver_options(method)
-    h = jnp.asarray(system.T / SPLIT_STEPS[system.name])
-    Z = _march.solve_element(method, system.H, q0, p0, h, None, options)[2]
-    fn = _march.element_residual(system.H, options.solver.sweep_dimension)
-    separable_field = system.V is not None
-
-    def field(Z):
-        X = q0 + jnp.linspace(0.0, 1.0, k)[:, None] * Z[0, : q0.size]  # k states near the element's
-        if separable_field:
-            return jax.vmap(jax.grad(system.H, argnums=0), in_axes=(0, None))(X, p0)
-        return jnp.concatenate(jax.vmap(jax.grad(system.H, argnums=(0, 1)), in_axes=(0, None))(X, p0), axis=1)
-
-    cost = lambda f, x: chained_us(lambda x: x + 1e-30 * jnp.mean(f(x)), x, calls)
-    residual_us = cost(lambda Z: fn(Z, (method, q0, p0, h, None)), Z)
-    field_us = cost(field, Z)
-    row = dict(k=k, steps=[SPLIT_STEPS[system.name], 4 * SPLIT_STEPS[system.name]],
-               updates_per_element=[u1, u2], us_per_element=[t1, t2], us_per_update=per_update,
-               us_fixed_per_element=fixed, us_residual=residual_us, us_field=field_us,
-               us_solver_per_update=per_update - residual_us, us_algebra_per_residual=residual_us - field_us)
-    share = lambda x: 100 * x / t1
-    print(f"  {system.name}: {t1:.1f} us an element at n = {points and SPLIT_STEPS[system.name]} ({u1:.1f} updates): "
-          f"fields {share(u1 * field_us):.0f} %, the residual's algebra {share(u1 * (residual_us - field_us)):.0f} %, "
-          f"the solver's checks {share(u1 * (per_update - residual_us)):.0f} %, per element {share(fixed):.0f} % "
-          f"(per update {per_update:.2f} us: residual {residual_us:.2f}, of it fields {field_us:.2f})", flush=True)
-    return row
-
-
-# ---------------------------------------------------------------- main
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="small systems, short spans, a few solvers (minutes)")
     parser.add_argument("--only", nargs="+", metavar="SYSTEM", help="run only these systems (names as in the table)")
     parser.add_argument("--cap", type=float, default=None, help="the longest predicted run that is run (s; "
                         "default 3, --quick 0.5)")
-    parser.add_argument("--gradients", action="store_true", help="only the price of one gradient per system "
-                        "(gradient_costs; writes moderate_gradients.json)")
-    parser.add_argument("--split", action="store_true", help="only where an element's time goes (element_split; "
-                        "writes moderate_split.json)")
     parser.add_argument("--name", help="output name (default moderate, with _quick and the systems run when not all)")
     options = parser.parse_args()
     available = system_list(options.quick)
@@ -887,21 +598,12 @@ def main():
         parser.error(f"unknown systems {unknown}; choose from {list(available)}")
     cap_s = options.cap or (0.5 if options.quick else 3.0)
     suffix = ("_quick" if options.quick else "") + ("" if chosen == list(available) else "_" + "_".join(chosen))
-    name = options.name or "moderate" + ("_gradients" if options.gradients else "_split" if options.split else
-                                         "") + suffix
     before, start = machine(), time.perf_counter()
-    if options.split:
-        write(name, {"machine_before": before, "split": {n: element_split(available[n]()) for n in chosen}})
-        return
-    if options.gradients:
-        write(name, {"machine_before": before, "gradients_us": {n: gradient_costs(available[n]()) for n in chosen}})
-        return
-    solvers = solver_list(options.quick)
     results, all_probes = {}, {}
     repeat, budget_s = (1, 0.5) if options.quick else (3, 3.0)
     for system_name in chosen:
-        system = available[system_name]()
-        results[system_name], all_probes[system_name] = run_system(system, solvers, cap_s, options.quick)
+        results[system_name], all_probes[system_name] = run_system(available[system_name](), solver_list(options.quick),
+                                                                   cap_s)
         time_cheapest(results[system_name], all_probes[system_name], repeat, budget_s)
     # a second timing pass, minutes after the first: this machine's speed drifts
     for system_name in chosen:
@@ -913,14 +615,9 @@ def main():
             entry["final_runs"] = sorted(probe.finals.values(), key=lambda r: r["index"])
     markdown = tables(results)
     total_s = time.perf_counter() - start
-    after = machine()
-    header = (f"`{after['command']}`, {time.strftime('%Y-%m-%d')}, {total_s / 60:.1f} min; {after['processor']}, "
-              f"{os.cpu_count()} cores, JAX {after['jax']}, diffrax {diffrax.__version__}, float64; load average "
-              f"{' '.join(before['load_average'])} before, {' '.join(after['load_average'])} after.\n\n")
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"{name}.md").write_text(header + markdown)
-    write(name, {"machine_before": before, "quick": options.quick, "versions": peers.versions(), "saves": SAVES,
-                 "levels": list(LEVELS), "cap_s": cap_s, "total_s": total_s, "systems": results, "table": markdown})
+    write(options.name or "moderate" + suffix,
+          {"machine_before": before, "quick": options.quick, "versions": before["versions"], "saves": SAVES,
+           "levels": list(LEVELS), "cap_s": cap_s, "total_s": total_s, "systems": results}, markdown)
     print(markdown)
     print(f"total {total_s / 60:.1f} min")
 

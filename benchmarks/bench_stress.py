@@ -1,6 +1,6 @@
 """Hard first elements: the solver's iterations against plain Newton's (issue 23).
 
-    python benchmarks/bench_stress.py
+    python -m benchmarks stress
 
 For every case of the stress set (``tests/test_stress.py``: large h omega, large momenta,
 near-collisions, a non-separable H, every method family; one element from the constant guess)
@@ -14,19 +14,18 @@ Newton's root against LU's, in units of eps cond(dR/dZ) (``test_stress.tangent_e
 results/stress.json.
 """
 
+import argparse
 import pathlib
 import sys
 
-import jax
-import numpy as np
+from _common import show, write  # first: one BLAS thread
 
-jax.config.update("jax_enable_x64", True)
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-sys.path.insert(0, str(pathlib.Path(__file__).parent.parent / "tests"))
+import numpy as np  # noqa: E402
 
 import galerkin_jax as gj  # noqa: E402
+
+sys.path.insert(0, str(pathlib.Path(__file__).parent.parent / "tests"))
 import test_stress  # noqa: E402
-from _common import write  # noqa: E402
 
 
 def row(name):
@@ -40,22 +39,23 @@ def row(name):
 
 
 def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--only", nargs="+", choices=list(test_stress.CASES), default=list(test_stress.CASES),
+                        metavar="CASE", help="run only these cases (names as in tests/test_stress.py)")
+    parser.add_argument("--name", default="stress")
+    options = parser.parse_args()
     rows = {}
-    for name in test_stress.CASES:
-        rows[name] = r = row(name)
-        print(f"{name:82} plain {r['plain_newton_iterations']:3d}  ours {r['iterations']:3d}  "
-              f"(x{r['ratio']:.2f})  status {r['status']}  root difference {r['root_difference_eps']:7.2f} eps  "
-              f"without watchdog {r['iterations_without_watchdog']:3d} (status {r['status_without_watchdog']})  "
-              f"tangent error {r['tangent_error_cond_eps']:5.1f} cond eps",
-              flush=True)
+    for name in options.only:
+        rows[name] = row(name)
+        show(name, rows[name])
     ratios = np.array([r["ratio"] for r in rows.values()])
     summary = {"cases": len(rows), "max_ratio": float(ratios.max()), "mean_ratio": float(ratios.mean()),
                "failures": sum(r["status"] != 0 for r in rows.values()),
                "failures_without_watchdog": sum(r["status_without_watchdog"] != 0 for r in rows.values()),
                "default_cap": gj.SolverOptions().max_iterations,
                "max_tangent_error_cond_eps": float(max(r["tangent_error_cond_eps"] for r in rows.values()))}
-    print(summary)
-    write("stress", {"summary": summary, "rows": rows})
+    show("summary", summary)
+    write(options.name, {"summary": summary, "rows": rows})
 
 
 if __name__ == "__main__":
