@@ -14,6 +14,11 @@ Three step rules share it:
 * a constant h (``save_at`` or ``events`` on a run of fixed steps): every attempt is accepted,
   the last one shortened to land on t1.
 
+Each attempt (``_body``) solves an element (``_attempt``), has the step rule judge it (a
+``Verdict``), records what the accepted element writes (saves, events, dense output, the
+estimate, checkpoints) and counts. The carry is a ``Carry`` of named parts, each None where
+the run does not ask for it; what stays fixed while the loop runs is a ``_Loop``.
+
 Under ``vmap`` every member takes its own steps and finished members idle: the body leaves
 their outputs as they are, and the loop goes on while any member does (``_any_member``); the
 root finder folds the batch into one iteration as in ``march``. The loop is
