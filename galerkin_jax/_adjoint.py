@@ -315,12 +315,30 @@ def _forward(spec, inputs, keep):
                       controller, options=spec.options, max_steps=spec.max_steps, ts=inputs["ts"], dense=spec.dense,
                       events=spec.events, estimate=spec.estimate, clock=clock, s=s, observe=spec.observe, acc0=acc0,
                       every=every, sigma=_sigma(inputs))
-    keep = ("z", "t", "status", "steps", "rejected", "attempts", "total", "most", "trips", "lenient", "h_min", "h_max",
-            "estimate", "hs", "ev_t", "ev_z", "ev_n", "ev_alpha", "ev_count", "ended", "node_t", "node_z", "W", "acc",
-            "checkpoints", "kept")
-    out = {k: c[k] for k in keep if k in c}
-    if inputs["ts"] is not None:
-        out["saved"], out["places"] = c["saved"][0], c["saved"][1:]
+    return _outputs(c)
+
+
+def _outputs(c):
+    """The run's outputs (a dict) from the loop's final carry (``_adaptive.Carry``): where and
+    when it ended (``z``, ``t``), its status, counts and record, and what it kept where asked:
+    ``saved`` and ``places`` (the save times' states, and their elements and alphas), the
+    events (``ev_t``, ``ev_z``, ``ev_n``, ``ev_alpha``, ``ev_count``, ``ended``), the dense
+    output (``node_t``, ``node_z``, ``W``), ``acc``, and the ``checkpoints`` and ``kept`` roots."""
+    out = dict(z=c.node.z, t=c.node.t, status=c.status, **c.counts._asdict(), h_min=c.record.h_min,
+               h_max=c.record.h_max, estimate=c.record.estimate, hs=c.record.hs)
+    if c.events is not None:
+        e = c.events
+        out.update(ev_t=e.t, ev_z=e.z, ev_n=e.n, ev_alpha=e.alpha, ev_count=e.count, ended=e.ended)
+    if c.dense is not None:
+        out.update(node_t=c.dense.node_t, node_z=c.dense.node_z)
+        if c.dense.W is not None:
+            out["W"] = c.dense.W
+    if c.acc is not None:
+        out["acc"] = c.acc
+    if c.checkpoints is not None:
+        out.update(checkpoints=c.checkpoints.nodes, kept=c.checkpoints.kept)
+    if c.saves is not None:
+        out["saved"], out["places"] = c.saves.states, (c.saves.elements, c.saves.alphas)
     return out
 
 

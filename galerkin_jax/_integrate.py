@@ -22,6 +22,86 @@ DEFAULT_MAX_NEWTON_ITERATIONS = SolverOptions.max_iterations
 DEFAULT_MAX_STEPS = 4096  # attempts of a run whose steps a controller chooses (diffrax's default)
 
 
+_STATIC = dict(metadata=dict(static=True))
+
+
+@pytree_dataclass
+class Problem:
+    """What is integrated: Hamilton's equations of ``H`` (static) from ``(q0, p0)`` (flat), by
+    ``method`` with ``args`` (H's third argument, or None), the steps chosen by ``controller``
+    (a ``PIDController`` or ``TimeTransform``; None: fixed steps)."""
+
+    H: object = dataclasses.field(**_STATIC)
+    q0: jax.Array = None
+    p0: jax.Array = None
+    method: object = None
+    args: object = None
+    controller: object = None
+
+
+@pytree_dataclass
+class Span:
+    """Where the run goes: from ``t0`` to ``t1`` (None: ``n_steps`` elements) in the direction
+    ``direction`` (``_output.Direction``: a known sigma is static), by the step ``h`` (a
+    controller's first; None: picked, ``_adaptive.first_step``). ``h_last``: the last element's
+    length where fixed steps land on a concrete t1, else None. ``n_steps`` (the elements of fixed
+    steps) and ``max_steps`` (a loop's attempts, or the elements a scan to a traced t1 reserves)
+    are static."""
+
+    t0: jax.Array = 0.0
+    t1: jax.Array = None
+    h: jax.Array = None
+    direction: object = _output.FORWARDS
+    h_last: jax.Array = None
+    n_steps: int = dataclasses.field(default=None, **_STATIC)
+    max_steps: int = dataclasses.field(default=None, **_STATIC)
+
+
+@pytree_dataclass
+class Outputs:
+    """What the run keeps: the states at the save times ``ts`` (None: the ends, or fixed steps'
+    every ``save_every``-th node) or at every node (``nodes``, ``save_at="steps"``), the
+    ``events`` (a tuple of ``Event``, or None), every element's polynomial (``dense``) and the
+    largest local error (``estimate``, as ``integrate``'s ``error_estimate``). All but ``ts`` and
+    the events' leaves are static."""
+
+    ts: jax.Array = None
+    events: tuple = None
+    nodes: bool = dataclasses.field(default=False, **_STATIC)
+    save_every: int = dataclasses.field(default=1, **_STATIC)
+    dense: bool = dataclasses.field(default=False, **_STATIC)
+    estimate: object = dataclasses.field(default=True, **_STATIC)
+
+
+@pytree_dataclass
+class RunOptions:
+    """How the run computes (static): the root finder's ``Options``, the gradient's storage
+    (``checkpoint``, as ``integrate``'s) and the progress bar."""
+
+    solver: object = dataclasses.field(default=None, **_STATIC)
+    checkpoint: object = dataclasses.field(default=False, **_STATIC)
+    progress: bool = dataclasses.field(default=False, **_STATIC)
+
+
+@pytree_dataclass
+class Run:
+    """One frozen description of a run of ``integrate``, built once from its checked arguments
+    and handed down (``_directed``, ``_dispatch``) to the compiled program (``_integrate``,
+    ``_integrate_adaptive``), whose argument it is: its static parts are the program's, its
+    leaves the values it runs on."""
+
+    problem: Problem
+    span: Span
+    outputs: Outputs
+    options: RunOptions
+
+
+def _replace(run, **parts):
+    """``run`` with the fields ``parts[name]`` (a dict) of its part ``name`` replaced."""
+    return dataclasses.replace(run, **{name: dataclasses.replace(getattr(run, name), **fields)
+                                       for name, fields in parts.items()})
+
+
 @pytree_dataclass
 class Solution:
     """The result of ``integrate``: the saved states, the run's status and its counts.
@@ -290,14 +370,16 @@ def integrate(
     if checkpoint == _reversible.REVERSIBLE:
         _reversible.check_reversible(method, controller=controller, save_at=save_at, events=events, dense=dense,
                                      traced_end=n_steps is None and not _span.concrete(h, t0, t1))
-    flags = (checkpoint, bool(dense), bool(progress), estimate)
     single = isinstance(events, Event)
     events = _span.check_events(events, q0, p0, t0)
     sigma = _span.direction(t0, t1, q0.dtype)
     nodes = _span.check_nodes(save_at, save_every)
     ts = None if nodes else _span.check_save_at(save_at, t0, t1, q0.dtype, sigma)
-    sol = _directed(H, q0, p0, method, h, args, n_steps, t0, t1, sigma, controller, max_steps, ts, nodes, events,
-                    save_every, options, flags)
+    run = Run(Problem(H, q0, p0, method, args, controller),
+              Span(t0, t1, h, _output.Direction(sigma), n_steps=n_steps, max_steps=max_steps),
+              Outputs(ts, events, nodes=nodes, save_every=save_every, dense=bool(dense), estimate=estimate),
+              RunOptions(options, checkpoint=checkpoint, progress=bool(progress)))
+    sol = _directed(run)
     if single:
         sol = dataclasses.replace(sol, events=sol.events[0])
     if throw:
@@ -305,8 +387,7 @@ def integrate(
     return sol
 
 
-def _directed(H, q0, p0, method, h, args, n_steps, t0, t1, sigma, controller, max_steps, ts, nodes, events,
-              save_every, options, flags):
+def _directed(run):
     """The run from t0 to t1 in the direction sigma = sign(t1 - t0) (``_span.direction``): with
     tau = sigma t, Hamilton's flow is dz/dtau = J D(sigma H)(z), so it is the run forwards of
     sigma H (``_march.in_direction``) from sigma t0 to sigma t1, its save times sigma ts, its
@@ -315,57 +396,60 @@ def _directed(H, q0, p0, method, h, args, n_steps, t0, t1, sigma, controller, ma
     (``DenseOutput.direction``). A known sigma is a Python int (1: the run as it is; -1: -H,
     times negated); a traced one (``jit``, ``vmap`` over t1) is carried as a value, so one
     program runs either way."""
+    problem, span = run.problem, run.span
+    sigma, dtype = span.direction.sigma, problem.q0.dtype
     known = isinstance(sigma, int)
-    if (known and sigma == 1) or (not known and not method.hamiltonian):
+    if (known and sigma == 1) or (not known and not problem.method.hamiltonian):
         # forwards; or a Lagrangian, which has no sigma H: a traced t1 < t0 is INVALID_INPUT in the run
-        return _dispatch(H, q0, p0, method, h, args, n_steps, jnp.asarray(t0, q0.dtype), t1, controller,
-                         max_steps, ts, nodes, events, save_every, options, flags, _output.FORWARDS)
-    if not method.hamiltonian:
+        return _dispatch(_replace(run, span=dict(t0=jnp.asarray(span.t0, dtype), direction=_output.FORWARDS)))
+    if not problem.method.hamiltonian:
         raise ValueError("t1 < t0 (a run backwards in time) needs a Hamiltonian method; LagrangianVI is given L.")
-    direction = _output.Direction(sigma)
-    H, args = in_direction(H, args, sigma)
-    into = lambda x: None if x is None else _output.directed(jnp.asarray(x, q0.dtype), sigma)
-    sol = _dispatch(H, q0, p0, method, h, args, None, into(t0), into(t1), controller, max_steps, into(ts), nodes,
-                    events, save_every, options, flags, direction)
+    H, args = in_direction(problem.H, problem.args, sigma)
+    into = lambda x: None if x is None else _output.directed(jnp.asarray(x, dtype), sigma)
+    sol = _dispatch(_replace(run, problem=dict(H=H, args=args), span=dict(t0=into(span.t0), t1=into(span.t1)),
+                             outputs=dict(ts=into(run.outputs.ts))))
     back = lambda x: _output.directed(x, sigma)
     dense = None if sol.dense is None else dataclasses.replace(
-        sol.dense, t=back(sol.dense.t), t_end=back(sol.dense.t_end), t1=back(sol.dense.t1), direction=direction)
+        sol.dense, t=back(sol.dense.t), t_end=back(sol.dense.t_end), t1=back(sol.dense.t1), direction=span.direction)
     events = None if sol.events is None else [dataclasses.replace(e, t=back(e.t)) for e in sol.events]
     return dataclasses.replace(sol, t=back(sol.t), dense=dense, events=events)
 
 
-def _dispatch(H, q0, p0, method, h, args, n_steps, t0, t1, controller, max_steps, ts, nodes, events, save_every,
-              options, flags, direction):
-    """The compiled run that ``integrate``'s arguments ask for, forwards in its time (``_directed``):
-    fixed steps (a scan), or a loop whose steps are not known in advance (``_integrate_adaptive``,
-    whose events read the run's ``direction``)."""
-    statics = (options, *flags)
-    checkpoint, dense, progress, estimate = flags
-    if nodes:  # fixed steps save every node anyway
-        save_every = 1
-    if n_steps is not None and ts is None and events is None:
-        _checks.check_counts(n_steps, save_every)
-        return _integrate(H, q0, p0, method, h, args, t0, None, None, n_steps, save_every, *statics)
+def _dispatch(run):
+    """The compiled run that ``run`` asks for, forwards in its time (``_directed``): fixed steps
+    (a scan, ``_integrate``), or a loop whose steps are not known in advance
+    (``_integrate_adaptive``, whose events read the run's ``direction``)."""
+    problem, span, outputs = run.problem, run.span, run.outputs
+    h, t0, n_steps, max_steps, dtype = span.h, span.t0, span.n_steps, span.max_steps, problem.q0.dtype
+    if outputs.nodes:  # fixed steps save every node anyway
+        outputs = dataclasses.replace(outputs, save_every=1)
+    # the scan's run; every node is its save_every=1
+    fixed = lambda span: _integrate(dataclasses.replace(run, span=span, outputs=dataclasses.replace(outputs,
+                                                                                                    nodes=False)))
+    if n_steps is not None and outputs.ts is None and outputs.events is None:
+        _checks.check_counts(n_steps, outputs.save_every)
+        return fixed(span)
     if n_steps is not None:
         _checks.check_counts(n_steps, 1)
-        t1 = t0 + n_steps * h
-    t1 = jnp.asarray(t1, q0.dtype)
-    concrete = _span.concrete(h, t0, t1)
+        span = dataclasses.replace(span, t1=t0 + n_steps * h, n_steps=None)
+    span = dataclasses.replace(span, t1=jnp.asarray(span.t1, dtype))
+    concrete = _span.concrete(h, t0, span.t1)
     if max_steps is not None:
         _span.check_max_steps(max_steps)
-    if controller is None and ts is None and events is None:
-        if save_every != 1:
+    if problem.controller is None and outputs.ts is None and outputs.events is None:
+        if outputs.save_every != 1:
             raise ValueError("save_every needs n_steps; with t1, pass save_at=times to save at chosen times.")
         if concrete and max_steps is None:
-            n, h_last = _span.fixed_step_count(t0, t1, h)
-            return _integrate(H, q0, p0, method, h, args, t0, t1, jnp.asarray(h_last, q0.dtype), n, 1, *statics)
+            n, h_last = _span.fixed_step_count(t0, span.t1, h)
+            return fixed(dataclasses.replace(span, h_last=jnp.asarray(h_last, dtype), n_steps=n))
         if max_steps is None:
             raise ValueError("Fixed steps to a traced t1 (or with a traced h) need max_steps: the elements reserved.")
-        return _integrate(H, q0, p0, method, h, args, t0, t1, None, max_steps, 1, *statics)
+        return fixed(dataclasses.replace(span, n_steps=max_steps))
     if max_steps is None:
-        max_steps = _span.fixed_step_count(t0, t1, h)[0] if controller is None and concrete else DEFAULT_MAX_STEPS
-    return _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options,
-                               dense, estimate, nodes, checkpoint, direction)
+        max_steps = (_span.fixed_step_count(t0, span.t1, h)[0] if problem.controller is None and concrete
+                     else DEFAULT_MAX_STEPS)
+    span = dataclasses.replace(span, max_steps=max_steps)
+    return _integrate_adaptive(dataclasses.replace(run, span=span, outputs=outputs))
 
 
 def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
@@ -400,22 +484,25 @@ def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
     )
 
 
-@functools.partial(jax.jit, static_argnums=(0, 9, 10, 11, 12, 13, 14, 15))
-def _integrate(H, q0, p0, method, h, args, t0, t1, h_last, n_steps, save_every, options, checkpoint, dense, progress,
-               estimate):
+@jax.jit
+def _integrate(run):
     """Fixed steps: ``n_steps`` of size h, or to ``t1`` (the last of size ``h_last``; None: ``n_steps``
     elements are reserved and the first that reach t1 taken, ``reserved_to_t1``)."""
+    problem, span, outputs, options = run.problem, run.span, run.outputs, run.options
+    H, q0, p0, method, args = problem.H, problem.q0, problem.p0, problem.method, problem.args
+    h, t0, t1, h_last, n_steps, save_every = span.h, span.t0, span.t1, span.h_last, span.n_steps, outputs.save_every
     n_active, t_end = None, t1
     if t1 is not None and h_last is None:
         n_active, h_last, t_end = reserved_to_t1(t0, t1, h, n_steps)
-    if checkpoint == _reversible.REVERSIBLE:  # n_active is None: the caller refused a traced end
+    if options.checkpoint == _reversible.REVERSIBLE:  # n_active is None: the caller refused a traced end
         final, saved = _reversible.reversible_march(
-            H, method, q0, p0, h, h_last, args, (options, n_steps // save_every, save_every, estimate, progress))
+            H, method, q0, p0, h, h_last, args,
+            (options.solver, n_steps // save_every, save_every, outputs.estimate, options.progress))
         return solution(final, saved, None, q0, p0, h, save_every, t0, t_end)
     final, saved, kept = march(
         method, H, q0, p0, h, args, n_blocks=n_steps // save_every, block_size=save_every,
-        options=options, checkpoint=checkpoint, dense=dense, progress=progress, estimate=estimate,
-        h_last=h_last, n_active=n_active,
+        options=options.solver, checkpoint=options.checkpoint, dense=outputs.dense, progress=options.progress,
+        estimate=outputs.estimate, h_last=h_last, n_active=n_active,
     )
     if n_active is not None:
         final["status"] = short_of_t1(final["status"], t_end, t1)
@@ -433,18 +520,21 @@ def _forwards_only(t0, t1, final, saved, kept):
     return final, nan(saved), nan(kept)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 11, 12, 13, 14, 15, 16))
-def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, events, max_steps, options, dense,
-                        estimate, nodes, checkpoint, direction):
+@jax.jit
+def _integrate_adaptive(run):
     """A run whose steps are not known in advance (``_adaptive.run``), with the derivatives of the
     run that takes the same steps (``_adjoint``); ``nodes``: its saves are every accepted node
     (``save_at="steps"``), padded with t = inf and NaN states to ``max_steps + 1``. Its times are
     the run's tau, forwards; its events read the user's t = sigma tau (``direction``)."""
+    problem, span, outputs, options = run.problem, run.span, run.outputs, run.options
+    q0, p0, controller, t0, t1, ts, events = (problem.q0, problem.p0, problem.controller, span.t0, span.t1, outputs.ts,
+                                              outputs.events)
     transform = controller if isinstance(controller, TimeTransform) else None
-    spec = _adjoint.Spec(H, transform, options, max_steps, dense=True if dense else ("nodes" if nodes else False),
-                         events=events, estimate=estimate, checkpoint=checkpoint)
-    inputs = dict(q0=q0, p0=p0, args=args, method=method, controller=None if transform else controller, t0=t0,
-                  t1=t1, ts=ts, h=h, direction=direction)
+    spec = _adjoint.Spec(problem.H, transform, options.solver, span.max_steps,
+                         dense=True if outputs.dense else ("nodes" if outputs.nodes else False), events=events,
+                         estimate=outputs.estimate, checkpoint=options.checkpoint)
+    inputs = dict(q0=q0, p0=p0, args=problem.args, method=problem.method, controller=None if transform else controller,
+                  t0=t0, t1=t1, ts=ts, h=span.h, direction=span.direction)
     c = _adjoint.run(spec, inputs)
     clock = None if transform is None else q0.shape[0]
     view = lambda z: _output.user_view(z, clock)
@@ -453,13 +543,13 @@ def _integrate_adaptive(H, q0, p0, method, h, args, t0, t1, controller, ts, even
     failed = jnp.where((status == Status.MAX_STEPS) | (status == Status.DTMIN), Status.SUCCESS, status)
     if ts is not None:
         t, (q, p) = ts, view(c["saved"])
-    elif nodes:
+    elif outputs.nodes:
         t, (q, p) = c["node_t"], view(c["node_z"])
     else:
         q_end, p_end = view(nan_if_failed(c["z"], failed))
         t, q, p = jnp.stack([t0, c["t"]]), jnp.stack([q0, q_end]), jnp.stack([p0, p_end])
     dense_output = None
-    if dense:
+    if outputs.dense:
         dense_output = DenseOutput(t=c["node_t"], z=c["node_z"], W=c["W"], t_end=c["t"], t1=t1, clock=clock)
     found = None
     if events is not None:

@@ -604,3 +604,33 @@ def test_the_embedded_estimate_against_the_full_one(scene):
         assert np.all(embedded >= full)
         ratios.append(float(embedded.max() / full.max()))
     assert 2 ** 1.5 < ratios[1] / ratios[0] < 2 ** 2.5  # h^(-k), k = 2: a factor 4 per halving
+
+
+def test_the_loop_carries_only_the_parts_a_run_asks_for():
+    """The loop's carry (``_adaptive.Carry``) is made of named parts, each None where the run
+    does not ask for it: a PID run with no outputs carries no saves, dense output, events,
+    checkpoints, diagnostics or peak elements (``estimate=False``), and its leaves are the node,
+    the rule's state, the status, the counts and the record (measured: 26 leaves for CG(3)); save
+    times, two events and dense output add their buffers of the asked sizes (measured: 45
+    leaves). Traced by ``jax.eval_shape``: nothing compiles."""
+    from galerkin_jax import _adaptive
+    from galerkin_jax._march import solver_options
+
+    options = solver_options(CG3)
+    ts = jnp.linspace(0.5, 2.0, 4)
+    events = (gj.Event(lambda t, q, p: q[1], capacity=5), gj.Event(lambda t, q, p: q[0], capacity=3))
+
+    def carry(**outputs):
+        return jax.eval_shape(lambda: _adaptive.run(CG3, H, Q0, P0, 0.0, 2.0, 0.01, None, pid(1e-8), options=options,
+                                                    max_steps=64, **outputs))
+
+    plain = carry()
+    assert all(part is None for part in (plain.saves, plain.dense, plain.events, plain.checkpoints, plain.acc,
+                                         plain.record.peak, plain.node.memo))
+    assert set(plain.control.memory) == {"err1", "err2"} and plain.counts.steps.dtype == jnp.int32
+    assert len(jax.tree.leaves(plain)) == 26
+    full = carry(ts=ts, events=events, dense=True)
+    assert full.saves.states.shape == (4, 4) and full.saves.elements.shape == (4,)
+    assert [z.shape for z in full.events.z] == [(5, 4), (3, 4)] and full.events.count.shape == (2,)
+    assert full.dense.node_z.shape == (65, 4) and full.dense.W.shape[:1] == (64,)
+    assert len(jax.tree.leaves(full)) == 45
