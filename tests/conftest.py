@@ -45,6 +45,10 @@ def _with_compile_flags():
 
 
 _with_compile_flags()
+# The suite keeps no compiled program on disk: the README's tour, run by tests/test_docs.py,
+# calls gj.use_compilation_cache(), which would otherwise write every later program of that
+# worker into the user's cache folder and load programs of earlier runs from it.
+os.environ["GALERKIN_JAX_CACHE"] = ""
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")  # no silent broadcasting
 

@@ -183,3 +183,11 @@ def test_a_second_process_with_the_compilation_cache_compiles_nothing(tmp_path):
     assert status == 0 and programs >= 1 and hits == 0
     assert programs_again == hits_again == programs  # each program of the second process loaded
     assert any(tmp_path.iterdir())
+
+
+def test_the_suite_keeps_no_compiled_program_on_disk():
+    """``conftest`` sets ``GALERKIN_JAX_CACHE`` empty: the README tour's
+    ``gj.use_compilation_cache()`` (run by test_docs) then turns no cache on, where it wrote a
+    worker's every later program into ~/.cache/galerkin_jax and loaded earlier runs' from it."""
+    assert gj.use_compilation_cache() is None
+    assert jax.config.jax_compilation_cache_dir is None
