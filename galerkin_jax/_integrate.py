@@ -428,7 +428,7 @@ def _dispatch(run):
                                                                                                     nodes=False)))
     if n_steps is not None and outputs.ts is None and outputs.events is None:
         _checks.check_counts(n_steps, outputs.save_every)
-        return fixed(span)
+        return fixed(dataclasses.replace(span, max_steps=None))  # n_steps elements: max_steps reserves none
     if n_steps is not None:
         _checks.check_counts(n_steps, 1)
         span = dataclasses.replace(span, t1=t0 + n_steps * h, n_steps=None)
@@ -448,8 +448,10 @@ def _dispatch(run):
     if max_steps is None:
         max_steps = (_span.fixed_step_count(t0, span.t1, h)[0] if problem.controller is None and concrete
                      else DEFAULT_MAX_STEPS)
-    span = dataclasses.replace(span, max_steps=max_steps)
-    return _integrate_adaptive(dataclasses.replace(run, span=span, outputs=outputs))
+    # a loop saves at ts or every node, and shows no progress bar: those options are not its program's
+    return _integrate_adaptive(dataclasses.replace(run, span=dataclasses.replace(span, max_steps=max_steps),
+                                                   outputs=dataclasses.replace(outputs, save_every=1),
+                                                   options=dataclasses.replace(run.options, progress=False)))
 
 
 def solution(final, saved, kept, q0, p0, h, block_size, t0=0.0, t1=None):
