@@ -109,6 +109,18 @@ def first_derivatives(f, tangent, cotangent):
     return derivatives
 
 
+def jacobians(f, x):
+    """``(f(x), forward, reverse)`` for a 1-D x: the Jacobian by forward mode (its columns, the
+    linearization on the basis vectors, as ``jax.jacfwd`` takes them) and by reverse mode (its
+    rows, the transpose of the same linearization on the basis vectors, as ``jax.jacrev``); one
+    linearization, so inside ``jit`` one program, and outside it the inputs' values stay known
+    while the run is traced (as under ``jax.jacfwd``)."""
+    value, linear = jax.linearize(f, x)
+    forward = jax.vmap(linear, out_axes=-1)(jnp.eye(x.size, dtype=x.dtype))
+    reverse = jax.vmap(jax.linear_transpose(linear, x))(jnp.eye(value.size, dtype=value.dtype))[0]
+    return value, forward, reverse
+
+
 def _products(f, args, eps, seed):
     """For random t and c: ``(J t, <J^T c, t>, D, c)``, D the central difference
     (f(x + eps t) - f(x - eps t)) / (2 eps), all from one compiled program (``first_derivatives``)."""
