@@ -288,8 +288,9 @@ def test_a_failed_member_costs_no_more_iterations_and_no_nan_gradients():
         return jnp.sum(jnp.where((result.status == 0)[:, None], result.q, 0.0)), result
 
     # one compiled program per batch: the runs come with the gradients
-    with_failure, mixed = jax.grad(loss, has_aux=True)(1.0, [0.001, 1.0])
-    without, alone = jax.grad(loss, has_aux=True)(1.0, [0.001])
+    grad = jax.jit(jax.grad(loss, has_aux=True), static_argnums=1)
+    with_failure, mixed = grad(1.0, (0.001, 1.0))
+    without, alone = grad(1.0, (0.001,))
     assert int(mixed.status[0]) == 0 and int(mixed.status[1]) != 0
     # the batch waits for the failing member only in the elements up to its failure: at most
     # its own iterations more than the healthy member alone (50 elements would cost >= 100)
