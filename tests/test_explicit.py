@@ -14,7 +14,7 @@ import helpers
 
 VERLET = gj.GalerkinVI(1, gj.trapezoid())
 ITERATED = gj.SolverOptions(explicit=False)
-KEPLER = helpers.kepler()  # one H for the module: runs repeated by the tests compile once
+KEPLER = helpers.kepler()  # one H for the module: its structure and compiled runs are cached per function
 
 
 # --- structure ---------------------------------------------------------------------------
