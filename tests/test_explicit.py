@@ -1,5 +1,7 @@
 """Structure read from H (gj.structure), explicit elements and compositions (issue 44)."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,6 +14,7 @@ import helpers
 
 VERLET = gj.GalerkinVI(1, gj.trapezoid())
 ITERATED = gj.SolverOptions(explicit=False)
+KEPLER = helpers.kepler()  # one H for the module: its structure and compiled runs are cached per function
 
 
 # --- structure ---------------------------------------------------------------------------
@@ -72,7 +75,7 @@ def test_structure_of_pytree_states_and_args():
 def test_explicit_verlet_equals_the_iterated_galerkin_vi_to_roundoff(rule):
     """Measured: 4e-16 (q), 9e-16 (p) after 1000 Kepler steps; 1e-13 leaves room for the
     round-off of other CPUs (it grows like sqrt(n))."""
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     method = gj.GalerkinVI(1, rule)
     a = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=1000)
     b = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=1000, solver=ITERATED)
@@ -106,7 +109,7 @@ def test_general_h_keeps_the_iterated_element():
 def test_explicit_verlet_has_order_2_and_is_symplectic():
     """Fitted slope over h = 2 pi / 200 ... / 1600: 2.00 (the Verlet error constant is smooth
     in h here); symplecticity defect of the AD Jacobian: round-off (measured 2e-16)."""
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     T = 2 * np.pi
     qe, pe = helpers.kepler_exact(T)
     ns = (200, 400, 800, 1600)
@@ -131,13 +134,15 @@ def test_explicit_verlet_energy_stays_bounded():
 
 
 def test_explicit_verlet_derivatives_vmap_and_save_at():
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     run = lambda h: gj.integrate(H, q0, p0, method=VERLET, h=h, n_steps=100).q[-1, 0]
     eps = 1e-6
     fd = (run(0.01 + eps) - run(0.01 - eps)) / (2 * eps)
-    assert float(jax.grad(run)(0.01)) == pytest.approx(float(fd), rel=1e-7)  # central FD: O(eps^2) + round-off
-    gq = jax.grad(lambda q: gj.integrate(H, q, p0, method=VERLET, h=0.01, n_steps=50).p[-1, 1])(q0)
-    gq_iter = jax.grad(lambda q: gj.integrate(H, q, p0, method=VERLET, h=0.01, n_steps=50, solver=ITERATED).p[-1, 1])(q0)
+    # jitted gradients: one compiled program each (eagerly two, the forward pass's and the transpose's)
+    assert float(jax.jit(jax.grad(run))(0.01)) == pytest.approx(float(fd), rel=1e-7)  # central FD: O(eps^2) + round-off
+    gq = jax.jit(jax.grad(lambda q: gj.integrate(H, q, p0, method=VERLET, h=0.01, n_steps=50).p[-1, 1]))(q0)
+    gq_iter = jax.jit(jax.grad(lambda q: gj.integrate(H, q, p0, method=VERLET, h=0.01, n_steps=50,
+                                                      solver=ITERATED).p[-1, 1]))(q0)
     np.testing.assert_allclose(gq, gq_iter, rtol=1e-10)  # IFT through the iterations: the same derivative
     hs = jnp.array([0.01, 0.02])
     batch = jax.vmap(lambda h: gj.integrate(H, q0, p0, method=VERLET, h=h, n_steps=100).q[-1])(hs)
@@ -173,7 +178,7 @@ def test_composition_coefficients_are_symmetric_and_consistent(name):
     ("kahan_li8_s17", (50, 100, 200)),
 ])
 def test_composition_of_verlet_has_the_schemes_order(name, ns):
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     T = 2 * np.pi
     qe, pe = helpers.kepler_exact(T)
     method = gj.Composition(VERLET, name)
@@ -188,7 +193,7 @@ def test_composition_of_verlet_has_the_schemes_order(name, ns):
 def test_composition_of_midpoint_cg1_has_order_4():
     """cG(1) with the midpoint rule (implicit midpoint, symmetric, order 2) by the triple jump:
     measured slope 4.08 over these h."""
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     T = 2 * np.pi
     qe, pe = helpers.kepler_exact(T)
     method = gj.Composition(gj.CG(1, gj.gauss_legendre(1)), "yoshida4")
@@ -206,7 +211,7 @@ def test_composition_of_midpoint_cg1_has_order_4():
 def test_composition_is_symplectic_and_symmetric(method):
     """Phi_{-h} o Phi_h = id, with Phi_{-h} for H that of -H for h: measured 2e-16; the
     symplecticity defect of the AD Jacobian: measured below 7e-16."""
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     q1, p1 = gj.step(H, q0, p0, method=method, h=0.1)
     q2, p2 = gj.step(lambda q, p: -H(q, p), q1, p1, method=method, h=0.1)
     assert float(jnp.max(jnp.abs(jnp.concatenate([q2 - q0, p2 - p0])))) < 1e-14
@@ -215,7 +220,7 @@ def test_composition_is_symplectic_and_symmetric(method):
 
 
 def test_composition_save_at_and_refusals():
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     method = gj.Composition(VERLET, "yoshida4")
     ts = jnp.linspace(0.0, 1.0, 5)
     saved = gj.integrate(H, q0, p0, method=method, h=0.01, t1=1.0, save_at=ts)
@@ -253,7 +258,7 @@ def test_runs_whose_steps_a_loop_chooses_compute_the_closed_form(case):
     ``_adaptive``: each takes Verlet's closed form there (zero iterations) and equals the
     iterated solve to round-off (measured 7e-16, under PID 4e-15; the iterated run adds with
     compensation, the explicit one without), with the same error estimate (relative 1e-10)."""
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     kwargs = {
         "save_at": dict(h=0.01, t1=3.0, save_at=jnp.linspace(0.0, 3.0, 7)),
         "events": dict(h=0.01, t1=3.0, events=gj.Event(lambda t, q, p: q[0], capacity=4)),
@@ -282,7 +287,7 @@ def test_runs_whose_steps_a_loop_chooses_compute_the_closed_form(case):
 def test_a_time_transformed_run_iterates_its_non_separable_k():
     """A TimeTransform hands the method K = s(q, p) (H + p_t), which is not separable where H is:
     the run iterates (as the iterated one does) instead of using H's closed form."""
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     a, b = _both(H, q0, p0, h=0.05, t1=3.0, controller=gj.TimeTransform())
     assert int(a.status) == 0 and int(a.stats["num_newton_iterations"]) > 0
     assert _gap(a, b) == 0.0
@@ -292,7 +297,7 @@ def test_sweeps_compute_the_closed_form():
     """A sweep's members (fixed steps, and a PIDController's) take the closed form: zero
     iterations, the iterated sweep's states to round-off (measured 2e-15; energy errors 4e-9
     relative)."""
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     configs = gj.grid(method=VERLET, state=(q0, p0), h=[0.01, 0.02])
     for kwargs in (dict(n_steps=100), dict(t1=0.5, controller=gj.PIDController(1e-3, 1e-3))):
         a, b = gj.sweep(H, configs, **kwargs), gj.sweep(H, configs, solver=ITERATED, **kwargs)
@@ -302,29 +307,43 @@ def test_sweeps_compute_the_closed_form():
         np.testing.assert_allclose(a.energy_error, b.energy_error, rtol=1e-6)
 
 
+@functools.cache
+def _jacobians(case):
+    """d(q, p)(T) / d(q0, p0) of the closed form (autodiff of Verlet) and of the iterated solve
+    (the implicit function theorem), each by forward and by reverse mode: one compiled program
+    for all four, the products of one linearization and of its transpose (as ``jax.jacfwd`` and
+    ``jax.jacrev`` compute them), shared by the tests of the two modes."""
+    H, q0, p0 = KEPLER
+    kwargs = {"fixed": dict(h=0.01, n_steps=100), "save_at": dict(h=0.01, t1=1.0, save_at=jnp.linspace(0.0, 1.0, 3)),
+              "pid": dict(h=0.01, t1=0.5, controller=gj.PIDController(1e-3, 1e-3))}[case]
+
+    def final(z, solver):
+        sol = gj.integrate(H, z[:2], z[2:], method=VERLET, solver=solver, **kwargs)
+        return jnp.concatenate([sol.q[-1], sol.p[-1]])
+
+    def modes(z, solver):
+        value, linear = jax.linearize(lambda z: final(z, solver), z)
+        transpose = jax.linear_transpose(linear, z)
+        return {"jacfwd": jax.vmap(linear, out_axes=1)(jnp.eye(z.size)),  # columns J e_j
+                "jacrev": jax.vmap(lambda c: transpose(c)[0])(jnp.eye(value.size))}  # rows e_i^T J
+
+    return jax.jit(lambda z: (modes(z, None), modes(z, ITERATED)))(jnp.concatenate([q0, p0]))
+
+
 @pytest.mark.parametrize("mode", ["jacfwd", "jacrev"])
 @pytest.mark.parametrize("case", ["fixed", "save_at", "pid"])
 def test_derivatives_of_the_closed_form_equal_the_iterated_ones(mode, case):
     """d(q, p)(T) / d(q0, p0) by forward and reverse mode through the closed form (autodiff of
     Verlet) and through the iterated solve (the implicit function theorem): the same Jacobian
     to round-off (measured at most 7e-15 on entries up to 8.3)."""
-    H, q0, p0 = helpers.kepler()
-    kwargs = {"fixed": dict(h=0.01, n_steps=100), "save_at": dict(h=0.01, t1=1.0, save_at=jnp.linspace(0.0, 1.0, 3)),
-              "pid": dict(h=0.01, t1=0.5, controller=gj.PIDController(1e-3, 1e-3))}[case]
-    jac = getattr(jax, mode)
-
-    def final(z, solver):
-        sol = gj.integrate(H, z[:2], z[2:], method=VERLET, solver=solver, **kwargs)
-        return jnp.concatenate([sol.q[-1], sol.p[-1]])
-
-    z0 = jnp.concatenate([q0, p0])
-    a, b = jac(lambda z: final(z, None))(z0), jac(lambda z: final(z, ITERATED))(z0)
+    closed_form, iterated = _jacobians(case)
+    a, b = closed_form[mode], iterated[mode]
     assert bool(jnp.all(jnp.isfinite(a)))
     np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12)
 
 
 def test_vmap_over_states_and_steps_of_the_closed_form():
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     hs = jnp.array([0.01, 0.02, 0.005])
     run = lambda h, solver: gj.integrate(H, q0, p0, method=VERLET, h=h, t1=1.0, save_at=jnp.linspace(0.0, 1.0, 3),
                                          max_steps=256, solver=solver)
@@ -338,7 +357,7 @@ def test_the_closed_form_compiles_no_solver():
     the iterated run's (measured 750 and 2544 StableHLO operations with JAX 0.10.2)."""
     from test_program import operations
 
-    H, q0, p0 = helpers.kepler()
+    H, q0, p0 = KEPLER
     run = lambda solver: lambda q, p: gj.integrate(H, q, p, method=VERLET, h=0.01, t1=1.0, solver=solver,
                                                    save_at=jnp.linspace(0.0, 1.0, 5)).q
     explicit, iterated = operations(run(None), q0, p0), operations(run(ITERATED), q0, p0)

@@ -186,7 +186,7 @@ def test_save_at_events_gradients_vmap_and_sweep():
     run = lambda h: gj.integrate(H, q0, p0, method=method, h=h, n_steps=100).q[-1, 0]
     eps = 1e-6
     fd = (run(0.01 + eps) - run(0.01 - eps)) / (2 * eps)
-    assert float(jax.grad(run)(0.01)) == pytest.approx(float(fd), rel=1e-7)
+    assert float(jax.jit(jax.grad(run))(0.01)) == pytest.approx(float(fd), rel=1e-7)  # one program (eagerly two)
     hs = jnp.array([0.01, 0.02])
     batch = jax.vmap(lambda h: gj.integrate(H, q0, p0, method=method, h=h, n_steps=100).q[-1])(hs)
     np.testing.assert_allclose(batch[0], nodes.q[-1], rtol=0, atol=1e-14)
@@ -202,8 +202,9 @@ def test_reversible_gradient_rebuilds_the_states():
     method = gj.Splitting("blanes_moan4")
     run = lambda q, checkpoint: gj.integrate(H, q, p0, method=method, h=0.01, n_steps=200,
                                              checkpoint=checkpoint).p[-1, 1]
-    stored = jax.grad(lambda q: run(q, False))(q0)
-    rebuilt = jax.grad(lambda q: run(q, "reversible"))(q0)
+    # jitted gradients: one compiled program each (eagerly two, the forward pass's and the transpose's)
+    stored = jax.jit(jax.grad(lambda q: run(q, False)))(q0)
+    rebuilt = jax.jit(jax.grad(lambda q: run(q, "reversible")))(q0)
     np.testing.assert_allclose(rebuilt, stored, rtol=0, atol=1e-12)
 
 

@@ -131,15 +131,16 @@ def test_a_sweep_in_chunks_equals_the_sweep_at_once_and_so_does_its_gradient():
         return gj.sweep(H, configs, t1=3.0, controller=gj.PIDController(tols, tols), batch_size=batch_size,
                         invariants=ANGULAR)
 
-    loss = lambda q0s, batch_size: jnp.sum(run(q0s, batch_size).q ** 2)
-    at_once, at_once_grad = run(q0s, None), jax.grad(loss)(q0s, None)
+    # a jitted gradient is one compiled program (eagerly: the forward pass's and the transpose's)
+    grad_of_loss = jax.jit(jax.grad(lambda q0s, batch_size: jnp.sum(run(q0s, batch_size).q ** 2)), static_argnums=1)
+    at_once, at_once_grad = run(q0s, None), grad_of_loss(q0s, None)
     assert np.asarray(at_once.num_accepted_steps).tolist() == [15, 22, 51, 123, 305]
     for batch_size in (1, 2):
         chunks = run(q0s, batch_size)
         np.testing.assert_array_equal(chunks.num_accepted_steps, at_once.num_accepted_steps)
         np.testing.assert_allclose(chunks.q, at_once.q, rtol=0, atol=1e-13)
         np.testing.assert_allclose(chunks.invariant_errors["L"], at_once.invariant_errors["L"], rtol=1e-12)
-    grad = jax.grad(loss)(q0s, 1)  # chunks of 2 (and a remainder of 1) differ in the forward run alone
+    grad = grad_of_loss(q0s, 1)  # chunks of 2 (and a remainder of 1) differ in the forward run alone
     assert float(jnp.max(jnp.abs(grad - at_once_grad)) / jnp.max(jnp.abs(at_once_grad))) < 1e-12
     configs = gj.grid(method=[gj.CG(2, RULES[0])], h=[0.02, 0.05], state=STATES[:2])
     fixed, fixed_chunks = (gj.sweep(H, configs, n_steps=40, batch_size=b, save_every=10) for b in (None, 3))
@@ -287,8 +288,9 @@ def test_a_failed_member_costs_no_more_iterations_and_no_nan_gradients():
         return jnp.sum(jnp.where((result.status == 0)[:, None], result.q, 0.0)), result
 
     # one compiled program per batch: the runs come with the gradients
-    with_failure, mixed = jax.grad(loss, has_aux=True)(1.0, [0.001, 1.0])
-    without, alone = jax.grad(loss, has_aux=True)(1.0, [0.001])
+    grad = jax.jit(jax.grad(loss, has_aux=True), static_argnums=1)
+    with_failure, mixed = grad(1.0, (0.001, 1.0))
+    without, alone = grad(1.0, (0.001,))
     assert int(mixed.status[0]) == 0 and int(mixed.status[1]) != 0
     # the batch waits for the failing member only in the elements up to its failure: at most
     # its own iterations more than the healthy member alone (50 elements would cost >= 100)
