@@ -311,8 +311,8 @@ def test_sweeps_compute_the_closed_form():
 def _jacobians(case):
     """d(q, p)(T) / d(q0, p0) of the closed form (autodiff of Verlet) and of the iterated solve
     (the implicit function theorem), each by forward and by reverse mode: one compiled program
-    for all four, the products of one linearization and of its transpose (as ``jax.jacfwd`` and
-    ``jax.jacrev`` compute them), shared by the tests of the two modes."""
+    for all four, the products of one linearization and of its transpose (``helpers.jacobians``,
+    as ``jax.jacfwd`` and ``jax.jacrev`` compute them), shared by the tests of the two modes."""
     H, q0, p0 = KEPLER
     kwargs = {"fixed": dict(h=0.01, n_steps=100), "save_at": dict(h=0.01, t1=1.0, save_at=jnp.linspace(0.0, 1.0, 3)),
               "pid": dict(h=0.01, t1=0.5, controller=gj.PIDController(1e-3, 1e-3))}[case]
@@ -322,10 +322,8 @@ def _jacobians(case):
         return jnp.concatenate([sol.q[-1], sol.p[-1]])
 
     def modes(z, solver):
-        value, linear = jax.linearize(lambda z: final(z, solver), z)
-        transpose = jax.linear_transpose(linear, z)
-        return {"jacfwd": jax.vmap(linear, out_axes=1)(jnp.eye(z.size)),  # columns J e_j
-                "jacrev": jax.vmap(lambda c: transpose(c)[0])(jnp.eye(value.size))}  # rows e_i^T J
+        _, forward, reverse = helpers.jacobians(lambda z: final(z, solver), z)
+        return {"jacfwd": forward, "jacrev": reverse}
 
     return jax.jit(lambda z: (modes(z, None), modes(z, ITERATED)))(jnp.concatenate([q0, p0]))
 
