@@ -53,6 +53,32 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")  # no silent broadcasting
 
 
+# The suite's two tiers. The default one covers every line and branch of galerkin_jax that the
+# whole suite covers (.ci/check_coverage.py checks it in CI); the slow tier holds the other tests,
+# those listed in slow.txt (.ci/tiers.py chose them from a measured run of the whole suite).
+SLOW = {line.strip() for line in open(os.path.join(os.path.dirname(__file__), "slow.txt"))
+        if line.strip() and not line.startswith("#")}
+
+
+def pytest_addoption(parser):
+    parser.addoption("--tier", choices=("default", "slow", "all"), default="default",
+                     help="default: the tests that cover the library (minutes); slow: the others "
+                          "(tests/slow.txt); all: both")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    tier = config.getoption("tier")
+    for item in items:
+        if item.nodeid in SLOW:
+            item.add_marker(pytest.mark.slow)
+    if tier == "all":
+        return
+    chosen = [(item.nodeid in SLOW) == (tier == "slow") for item in items]
+    config.hook.pytest_deselected(items=[item for item, keep in zip(items, chosen) if not keep])
+    items[:] = [item for item, keep in zip(items, chosen) if keep]
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _free_compiled_programs():
     """Drop JAX's compiled programs after each test module. XLA's CPU backend maps a few

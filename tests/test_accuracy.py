@@ -125,7 +125,6 @@ def test_suggested_step_meets_the_tolerance_over_the_orbit():
     assert 5e-12 < estimate <= 1e-10
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name, method, n, bound", [
     ("DiscreteGradient", gj.DiscreteGradient(), 200_000, 1e-14),
     ("ModifiedMidpoint", gj.ModifiedMidpoint(), 200_000, 2e-14),
@@ -154,7 +153,6 @@ def test_energy_round_off_grows_no_faster_than_sqrt_n(name, method, n, bound):
     assert int(sol.stats["max_newton_iterations"]) <= 16 and int(sol.stats["num_accepted_stalled"]) <= 4
 
 
-@pytest.mark.slow
 def test_discrete_gradient_energy_error_is_a_random_walk():
     """Brouwer's law for the discrete gradient on Kepler e = 0.6, four h from 0.0099 to 0.0101,
     10^6 steps each: the spread S(L) of the energy error's change over L steps (RMS over the

@@ -290,7 +290,6 @@ def test_committed_notebook_is_executed_and_small(name):
     assert not any(o.get("output_type") == "error" for cell in code for o in cell.get("outputs", []))
 
 
-@pytest.mark.slow
 @pytest.mark.skipif("quick" not in EXECUTE,
                     reason="executes every notebook at the quick size: set GALERKIN_JAX_NOTEBOOKS=quick (.ci/run does)")
 @pytest.mark.parametrize("name", sorted(CHECKS))
@@ -307,7 +306,6 @@ def test_notebook_runs_at_quick_size(name, monkeypatch):
     assert not stale, f"{name}: the committed outputs are stale; re-execute the notebook:\n" + "\n".join(stale)
 
 
-@pytest.mark.slow
 @pytest.mark.skipif("committed" not in EXECUTE,
                     reason="executes every notebook at its committed size (minutes): set GALERKIN_JAX_NOTEBOOKS=committed")
 @pytest.mark.parametrize("name", sorted(KEY_FIGURES))

@@ -29,7 +29,6 @@ def _kepler_grads(n, checkpoint, h=0.01, save_every=None):
     return np.concatenate([np.asarray(g) for g in jax.jit(jax.grad(loss, argnums=(0, 1)))(Q0, P0)])
 
 
-@pytest.mark.slow
 def test_reversible_gradient_equals_stored_over_1e5_steps():
     """Over 10^5 midpoint steps of Kepler (h = 0.01, ~120 orbits) the gradient that rebuilds
     the states backwards equals the stored one to 2.9e-11 of its largest entry (3.6e3) as
@@ -40,7 +39,6 @@ def test_reversible_gradient_equals_stored_over_1e5_steps():
     assert np.max(np.abs(reversible - stored)) / np.max(np.abs(stored)) < 3e-10
 
 
-@pytest.mark.slow
 def test_rebuild_roundoff_grows_like_n_to_three_halves_on_kepler():
     """z_0 rebuilt from z_n by n elements of step -h (the backward pass's reconstruction) lies,
     as measured, 1.9e-14, 7.5e-13, 2.5e-11 from the true z_0 after 10^3, 10^4, 10^5 steps: slope

@@ -1,0 +1,47 @@
+"""The suite's two tiers: the slow tier's list names tests that exist, and CI's coverage check
+fails where the slow tier covers what the default tier does not."""
+
+import importlib.util
+import pathlib
+import subprocess
+import sys
+
+from conftest import SLOW
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _ci(name):
+    spec = importlib.util.spec_from_file_location(name, ROOT / ".ci" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_every_test_of_the_slow_tier_exists():
+    """A renamed or removed test left in tests/slow.txt would move its successor into the
+    default tier unseen: every listed node id is one the suite collects."""
+    collected = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", "--tier=all"],
+                               cwd=ROOT, capture_output=True, text=True, check=True).stdout.splitlines()
+    assert len(SLOW) > 300
+    assert sorted(SLOW - set(collected)) == []
+
+
+def _data(path, arcs):
+    from coverage import CoverageData
+
+    data = CoverageData(str(path))
+    data.add_arcs({"/src/galerkin_jax/_solve.py": arcs})
+    data.write()
+    return str(path)
+
+
+def test_the_coverage_check_names_an_arc_only_the_slow_tier_covers(tmp_path, capsys):
+    check = _ci("check_coverage").main
+    default = _data(tmp_path / "default", [(-1, 3), (3, 4), (4, -1)])
+    assert check(default, _data(tmp_path / "same", [(-1, 3), (3, 4)])) == 0
+    assert check(default, _data(tmp_path / "more", [(-1, 3), (3, 7)])) == 1
+    assert capsys.readouterr().out.splitlines()[-2:] == [
+        "/src/galerkin_jax/_solve.py: line 3 -> 7, covered by the slow tier alone",
+        "1 arcs of galerkin_jax are covered by the slow tier alone: move a test that covers them out of "
+        "tests/slow.txt, or make the list anew (.ci/tiers.py)"]
