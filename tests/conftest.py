@@ -66,6 +66,16 @@ def pytest_addoption(parser):
                           "(tests/slow.txt); all: both")
 
 
+def _named(config):
+    """The tests named on the command line (``FILE::TEST``): they run whatever their tier."""
+    named = []
+    for arg in config.args:
+        path, sep, test = arg.partition("::")
+        if sep:
+            named.append(f"{os.path.relpath(os.path.abspath(path), config.rootpath)}::{test}")
+    return tuple(named)
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
     tier = config.getoption("tier")
@@ -74,7 +84,8 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.slow)
     if tier == "all":
         return
-    chosen = [(item.nodeid in SLOW) == (tier == "slow") for item in items]
+    named = _named(config)
+    chosen = [(item.nodeid in SLOW) == (tier == "slow") or item.nodeid.startswith(named) for item in items]
     config.hook.pytest_deselected(items=[item for item, keep in zip(items, chosen) if not keep])
     items[:] = [item for item, keep in zip(items, chosen) if keep]
 

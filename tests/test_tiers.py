@@ -18,13 +18,27 @@ def _ci(name):
     return module
 
 
+def collected(*args):
+    """The node ids ``python -m pytest ARGS`` would run."""
+    out = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", *args], cwd=ROOT,
+                         capture_output=True, text=True, check=True).stdout.splitlines()
+    return [line for line in out if "::" in line]
+
+
 def test_every_test_of_the_slow_tier_exists():
     """A renamed or removed test left in tests/slow.txt would move its successor into the
     default tier unseen: every listed node id is one the suite collects."""
-    collected = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", "--tier=all"],
-                               cwd=ROOT, capture_output=True, text=True, check=True).stdout.splitlines()
     assert len(SLOW) > 300
-    assert sorted(SLOW - set(collected)) == []
+    assert sorted(SLOW - set(collected("--tier=all"))) == []
+
+
+def test_a_test_named_on_the_command_line_runs_whatever_its_tier():
+    """A file runs its default tier's tests; a slow test named by its id runs (not deselected)."""
+    name = "tests/test_derivatives.py::test_every_output_of_a_run_against_central_differences[pid]"
+    assert name in SLOW
+    assert collected(name) == [name]
+    in_file = collected("tests/test_derivatives.py")
+    assert in_file and not SLOW & set(in_file)
 
 
 def _data(path, arcs):
