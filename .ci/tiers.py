@@ -42,9 +42,8 @@ def arcs_by_test(path):
 def durations(path):
     """Each test's seconds (setup, call and teardown added) from pytest's ``--durations=0`` lines."""
     seconds = collections.Counter()
-    for line in open(path):
-        match = DURATION.match(line)
-        if match:
+    with open(path) as lines:
+        for match in filter(None, map(DURATION.match, lines)):
             seconds[match[2]] += float(match[1])
     return seconds
 

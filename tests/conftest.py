@@ -1,4 +1,5 @@
 import os
+import pathlib
 import subprocess
 import sys
 
@@ -56,7 +57,7 @@ jax.config.update("jax_numpy_rank_promotion", "raise")  # no silent broadcasting
 # The suite's two tiers. The default one covers every line and branch of galerkin_jax that the
 # whole suite covers (.ci/check_coverage.py checks it in CI); the slow tier holds the other tests,
 # those listed in slow.txt (.ci/tiers.py chose them from a measured run of the whole suite).
-SLOW = {line.strip() for line in open(os.path.join(os.path.dirname(__file__), "slow.txt"))
+SLOW = {line.strip() for line in pathlib.Path(__file__).with_name("slow.txt").read_text().splitlines()
         if line.strip() and not line.startswith("#")}
 
 

@@ -58,3 +58,23 @@ def test_the_coverage_check_names_an_arc_only_the_slow_tier_covers(tmp_path, cap
         "/src/galerkin_jax/_solve.py: line 3 -> 7, covered by the slow tier alone",
         "1 arcs of galerkin_jax are covered by the slow tier alone: move a test that covers them out of "
         "tests/slow.txt, or make the list anew (.ci/tiers.py)"]
+
+
+def test_the_tiers_are_a_cover_of_every_arc_and_keep_no_test_another_covers(tmp_path):
+    """``.ci/tiers.py`` reads each test's arcs from a coverage file with per-test contexts, and its
+    set cover keeps the cheap pair that covers a, b and c (Y and Z, 3 s), not the one test of 10 s
+    nor the 0.1 s test whose arc Z covers too (the greedy pass takes it first; the swap drops it)."""
+    from coverage import CoverageData
+
+    tiers = _ci("tiers")
+    data = CoverageData(str(tmp_path / "per-test"))
+    for context, arcs in [("", [(1, 2)]), ("tests/t.py::x|run", [(3, 4), (4, 5), (5, 6)]),
+                          ("tests/t.py::y|run", [(3, 4)]), ("tests/t.py::z|run", [(4, 5), (5, 6)]),
+                          ("tests/t.py::w|run", [(5, 6)])]:
+        data.set_context(context)
+        data.add_arcs({"/src/galerkin_jax/_solve.py": arcs})
+    data.write()
+    cover, base = tiers.arcs_by_test(str(tmp_path / "per-test"))
+    assert base == {("/src/galerkin_jax/_solve.py", 1, 2)} and sorted(cover) == [f"tests/t.py::{n}" for n in "wxyz"]
+    cost = {f"tests/t.py::{n}": c for n, c in zip("xyzw", (10.0, 1.0, 2.0, 0.1))}
+    assert tiers.default_tier(cover, base, cost) == {"tests/t.py::y", "tests/t.py::z"}
