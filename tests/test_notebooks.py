@@ -255,6 +255,15 @@ def printed(notebook):
                    for o in cell.get("outputs", []) if o.get("output_type") == "stream")
 
 
+def execute(notebook, timeout):
+    """Run ``notebook`` in place in a fresh kernel from the notebooks folder; ``timeout``: seconds
+    a cell may take. Raises CellExecutionError, with the cell and its traceback, on any error. The
+    kernel is killed at the end, not asked to stop: a graceful shutdown can wait on the kernel with
+    no time limit."""
+    nbclient.NotebookClient(notebook, timeout=timeout, kernel_name="python3", shutdown_kernel="immediate",
+                            resources={"metadata": {"path": str(NOTEBOOKS)}}).execute()
+
+
 def test_every_notebook_has_a_check():
     assert sorted(p.name for p in NOTEBOOKS.glob("*.ipynb")) == sorted(CHECKS) == sorted(KEY_FIGURES)
 
@@ -297,10 +306,8 @@ def test_notebook_runs_at_quick_size(name, monkeypatch):
     monkeypatch.setenv("GALERKIN_JAX_QUICK", "1")  # the kernel inherits the environment
     monkeypatch.setenv("XLA_FLAGS", user_xla_flags())  # compiled as a user's: conftest.COMPILE_FLAGS
     notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
-    client = nbclient.NotebookClient(notebook, timeout=300, kernel_name="python3",
-                                     resources={"metadata": {"path": str(NOTEBOOKS)}})
-    committed = printed(nbformat.read(NOTEBOOKS / name, as_version=4))
-    client.execute()  # raises CellExecutionError, with the cell and its traceback, on any error
+    committed = printed(notebook)
+    execute(notebook, timeout=300)
     CHECKS[name](printed(notebook))
     stale = stale_figures(name, committed, printed(notebook), quick=True)
     assert not stale, f"{name}: the committed outputs are stale; re-execute the notebook:\n" + "\n".join(stale)
@@ -314,8 +321,6 @@ def test_committed_outputs_are_what_the_code_prints(name, monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", user_xla_flags())
     notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
     committed = printed(notebook)
-    client = nbclient.NotebookClient(notebook, timeout=900, kernel_name="python3",
-                                     resources={"metadata": {"path": str(NOTEBOOKS)}})
-    client.execute()
+    execute(notebook, timeout=900)
     stale = stale_figures(name, committed, printed(notebook), quick=False)
     assert not stale, f"{name}: the committed outputs are stale; re-execute the notebook:\n" + "\n".join(stale)
