@@ -255,13 +255,26 @@ def printed(notebook):
                    for o in cell.get("outputs", []) if o.get("output_type") == "stream")
 
 
-def execute(notebook, timeout):
-    """Run ``notebook`` in place in a fresh kernel from the notebooks folder; ``timeout``: seconds
-    a cell may take. Raises CellExecutionError, with the cell and its traceback, on any error. The
-    kernel is killed at the end, not asked to stop: a graceful shutdown can wait on the kernel with
-    no time limit."""
-    nbclient.NotebookClient(notebook, timeout=timeout, kernel_name="python3", shutdown_kernel="immediate",
-                            resources={"metadata": {"path": str(NOTEBOOKS)}}).execute()
+def executed(name, monkeypatch, quick):
+    """The committed and the fresh printed text of notebook ``name``, run in a fresh kernel from
+    the notebooks folder at the quick or the committed size (a cell may take 300 s or 900 s).
+    Raises CellExecutionError, with the cell and its traceback, on any error. The kernel is killed
+    at the end, not asked to stop: a graceful shutdown can wait on the kernel with no time limit."""
+    if quick:
+        monkeypatch.setenv("GALERKIN_JAX_QUICK", "1")  # the kernel inherits the environment
+    else:
+        monkeypatch.delenv("GALERKIN_JAX_QUICK", raising=False)
+    monkeypatch.setenv("XLA_FLAGS", user_xla_flags())  # compiled as a user's: conftest.COMPILE_FLAGS
+    notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
+    committed = printed(notebook)
+    nbclient.NotebookClient(notebook, timeout=300 if quick else 900, kernel_name="python3",
+                            shutdown_kernel="immediate", resources={"metadata": {"path": str(NOTEBOOKS)}}).execute()
+    return committed, printed(notebook)
+
+
+def assert_not_stale(name, committed, fresh, quick):
+    stale = stale_figures(name, committed, fresh, quick)
+    assert not stale, f"{name}: the committed outputs are stale; re-execute the notebook:\n" + "\n".join(stale)
 
 
 def test_every_notebook_has_a_check():
@@ -303,24 +316,13 @@ def test_committed_notebook_is_executed_and_small(name):
                     reason="executes every notebook at the quick size: set GALERKIN_JAX_NOTEBOOKS=quick (.ci/run does)")
 @pytest.mark.parametrize("name", sorted(CHECKS))
 def test_notebook_runs_at_quick_size(name, monkeypatch):
-    monkeypatch.setenv("GALERKIN_JAX_QUICK", "1")  # the kernel inherits the environment
-    monkeypatch.setenv("XLA_FLAGS", user_xla_flags())  # compiled as a user's: conftest.COMPILE_FLAGS
-    notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
-    committed = printed(notebook)
-    execute(notebook, timeout=300)
-    CHECKS[name](printed(notebook))
-    stale = stale_figures(name, committed, printed(notebook), quick=True)
-    assert not stale, f"{name}: the committed outputs are stale; re-execute the notebook:\n" + "\n".join(stale)
+    committed, fresh = executed(name, monkeypatch, quick=True)
+    CHECKS[name](fresh)
+    assert_not_stale(name, committed, fresh, quick=True)
 
 
 @pytest.mark.skipif("committed" not in EXECUTE,
                     reason="executes every notebook at its committed size (minutes): set GALERKIN_JAX_NOTEBOOKS=committed")
 @pytest.mark.parametrize("name", sorted(KEY_FIGURES))
 def test_committed_outputs_are_what_the_code_prints(name, monkeypatch):
-    monkeypatch.delenv("GALERKIN_JAX_QUICK", raising=False)
-    monkeypatch.setenv("XLA_FLAGS", user_xla_flags())
-    notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
-    committed = printed(notebook)
-    execute(notebook, timeout=900)
-    stale = stale_figures(name, committed, printed(notebook), quick=False)
-    assert not stale, f"{name}: the committed outputs are stale; re-execute the notebook:\n" + "\n".join(stale)
+    assert_not_stale(name, *executed(name, monkeypatch, quick=False), quick=False)

@@ -40,20 +40,24 @@ def test_a_test_named_on_the_command_line_runs_whatever_its_tier():
     assert SLOW & set(ids) == {name} and len(ids) > 1
 
 
-def _data(path, arcs):
+def _data(path, arcs_by_context):
+    """A coverage data file at ``path`` holding, per context (a test, or "" outside any), arcs of
+    one module of galerkin_jax."""
     from coverage import CoverageData
 
     data = CoverageData(str(path))
-    data.add_arcs({"/src/galerkin_jax/_solve.py": arcs})
+    for context, arcs in arcs_by_context.items():
+        data.set_context(context)
+        data.add_arcs({"/src/galerkin_jax/_solve.py": arcs})
     data.write()
     return str(path)
 
 
 def test_the_coverage_check_names_an_arc_only_the_slow_tier_covers(tmp_path, capsys):
     check = _ci("check_coverage").main
-    default = _data(tmp_path / "default", [(-1, 3), (3, 4), (4, -1)])
-    assert check(default, _data(tmp_path / "same", [(-1, 3), (3, 4)])) == 0
-    assert check(default, _data(tmp_path / "more", [(-1, 3), (3, 7)])) == 1
+    default = _data(tmp_path / "default", {"": [(-1, 3), (3, 4), (4, -1)]})
+    assert check(default, _data(tmp_path / "same", {"": [(-1, 3), (3, 4)]})) == 0
+    assert check(default, _data(tmp_path / "more", {"": [(-1, 3), (3, 7)]})) == 1
     assert capsys.readouterr().out.splitlines()[-2:] == [
         "/src/galerkin_jax/_solve.py: line 3 -> 7, covered by the slow tier alone",
         "1 arcs of galerkin_jax are covered by the slow tier alone: move a test that covers them out of "
@@ -64,17 +68,11 @@ def test_the_tiers_are_a_cover_of_every_arc_and_keep_no_test_another_covers(tmp_
     """``.ci/tiers.py`` reads each test's arcs from a coverage file with per-test contexts, and its
     set cover keeps the cheap pair that covers a, b and c (Y and Z, 3 s), not the one test of 10 s
     nor the 0.1 s test whose arc Z covers too (the greedy pass takes it first; the swap drops it)."""
-    from coverage import CoverageData
-
     tiers = _ci("tiers")
-    data = CoverageData(str(tmp_path / "per-test"))
-    for context, arcs in [("", [(1, 2)]), ("tests/t.py::x|run", [(3, 4), (4, 5), (5, 6)]),
-                          ("tests/t.py::y|run", [(3, 4)]), ("tests/t.py::z|run", [(4, 5), (5, 6)]),
-                          ("tests/t.py::w|run", [(5, 6)])]:
-        data.set_context(context)
-        data.add_arcs({"/src/galerkin_jax/_solve.py": arcs})
-    data.write()
-    cover, base = tiers.arcs_by_test(str(tmp_path / "per-test"))
+    path = _data(tmp_path / "per-test", {"": [(1, 2)], "tests/t.py::x|run": [(3, 4), (4, 5), (5, 6)],
+                                         "tests/t.py::y|run": [(3, 4)], "tests/t.py::z|run": [(4, 5), (5, 6)],
+                                         "tests/t.py::w|run": [(5, 6)]})
+    cover, base = tiers.arcs_by_test(path)
     assert base == {("/src/galerkin_jax/_solve.py", 1, 2)} and sorted(cover) == [f"tests/t.py::{n}" for n in "wxyz"]
     cost = {f"tests/t.py::{n}": c for n, c in zip("xyzw", (10.0, 1.0, 2.0, 0.1))}
     assert tiers.default_tier(cover, base, cost) == {"tests/t.py::y", "tests/t.py::z"}
