@@ -17,6 +17,7 @@ from ._output import DenseOutput as DenseOutput
 from ._composition import Composition as Composition
 from ._splitting import Splitting as Splitting
 from ._structure import Structure as Structure, structure as structure
+from ._explicit import UndecidedStructureWarning as UndecidedStructureWarning
 from ._galerkin import CG as CG, DG as DG
 from ._method import AbstractMethod as AbstractMethod
 from ._pytree import pytree_dataclass as pytree_dataclass
@@ -78,6 +79,7 @@ __all__ = [
     "Structure",
     "SweepResult",
     "TimeTransform",
+    "UndecidedStructureWarning",
     "amplification_matrix",
     "asymmetry",
     "gauss_legendre",

@@ -755,7 +755,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     # a run arrives forwards in its time (``_integrate._directed``): a traced t1 < t0 that did not (a
     # Lagrangian's) is bad input, and so is a traced save time outside [t0, t1], or out of the run's
     # order where that was not known before it ran (concrete ones raise before)
-    valid = (t1 > t0) if ts is None else (t1 > t0) & jnp.all((ts >= t0) & (ts <= t1))
+    valid = (t1 >= t0) if ts is None else (t1 >= t0) & jnp.all((ts >= t0) & (ts <= t1))
     if ts is not None and not isinstance(sigma, int):
         valid = valid & jnp.all(ts[1:] >= ts[:-1])
     status = jnp.where(valid, c.status, Status.INVALID_INPUT).astype(jnp.int32)

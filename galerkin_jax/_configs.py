@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._method import AbstractMethod, check_method, describe_method
-from ._state import check_state, state_dtype
+from ._state import check_state, non_finite, state_dtype
 from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
 
@@ -178,7 +178,9 @@ def _state_axis(state):
         if _flat_vector(q0) and _flat_vector(p0) and (q0.shape != p0.shape or q0.shape[0] == 0):
             raise ValueError(f"{name}: q0 and p0 need one length d >= 1, got {q0.shape[0]} and {p0.shape[0]}.")
         if not all(isinstance(x, jax.core.Tracer) or np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves((q0, p0))):
-            raise ValueError(f"{name} must be finite, got q0 = {q0}, p0 = {p0}.")
+            parts = [f"{part}: {non_finite(x)}" for part, tree in (("q0", q0), ("p0", p0))
+                     for x in jax.tree.leaves(tree) if not np.all(np.isfinite(np.asarray(x)))]
+            raise ValueError(f"{name} must be finite, got {'; '.join(parts)}.")
         try:
             check_state(q0, p0)
         except ValueError as error:

@@ -19,6 +19,7 @@ equations from the same start; the fixed-step scan (``_march``) and ``step`` cal
 """
 
 import dataclasses
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +27,7 @@ import numpy as np
 
 from ._method import AbstractMethod
 from ._pytree import pytree_dataclass
-from ._structure import structure
+from ._structure import Structure, structure
 
 
 @pytree_dataclass
@@ -114,7 +115,9 @@ def endpoint_indices(rule):
 
 def explicit_form(method, H, q0, p0, args, solver):
     """``method``'s explicit form for the structure of ``H`` (its ``explicit_form(structure)``
-    member), or ``method`` itself where it has none or ``solver.explicit`` is False.
+    member), or ``method`` itself where it has none or ``solver.explicit`` is False. Where it
+    would have one but H's structure cannot be read (an effect, a callback, a loop the analysis
+    does not follow), an ``UndecidedStructureWarning`` says so: the elements then iterate.
 
     Args:
         H: the user's function (flattened states, ``_shape``), args unbound.
@@ -124,8 +127,22 @@ def explicit_form(method, H, q0, p0, args, solver):
     form = getattr(method, "explicit_form", None)
     if not solver.explicit or form is None or not method.hamiltonian:
         return method
-    explicit = form(cached_structure(H, q0, p0, args))
+    found = cached_structure(H, q0, p0, args)
+    explicit = form(found)
+    if explicit is None and found.reason.startswith("undecidable") and form(_SEPARABLE) is not None:
+        warnings.warn(f"{type(method).__name__} could run without iteration on a separable H, but whether this H "
+                      f"is separable cannot be read from its program ({found.reason}; gj.structure): its elements "
+                      "are solved iteratively, at several evaluations of H's gradient each instead of one. Move "
+                      "the callback or effect out of H, or pass solver=gj.SolverOptions(explicit=False) to choose "
+                      "the iteration knowingly.", UndecidedStructureWarning, stacklevel=4)
     return method if explicit is None else explicit
+
+
+class UndecidedStructureWarning(UserWarning):
+    """A method with an explicit form runs iteratively: H's structure could not be read."""
+
+
+_SEPARABLE = Structure(True, False, False, "", True)
 
 
 def sweep_form(method, H, q0, p0, args, solver):
@@ -141,18 +158,32 @@ def _spec(tree):
     return treedef, tuple((jnp.shape(x), str(jnp.result_type(x))) for x in leaves)
 
 
-# structures read so far, oldest first: (H, state and args' shapes and dtypes) -> Structure
+def _program(H, q0, p0, args):
+    """H's program at these shapes, as text: what the structure is read from. H may read Python
+    state that changes between calls (a flag that adds a coupling term); its program then
+    changes, and so does this key."""
+    shape = lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
+    operands = jax.tree.map(shape, (q0, p0) if args is None else (q0, p0, args))
+    try:
+        # through a new function: JAX keeps the traces of H itself, whose Python state may have changed
+        return str(jax.make_jaxpr(lambda *xs: H(*xs))(*operands).jaxpr)
+    except Exception:  # noqa: BLE001 -- what cannot be traced is read anew (``structure`` says why)
+        return None
+
+
+# structures read so far, oldest first: (H, state and args' shapes and dtypes, H's program) -> Structure
 _STRUCTURES = {}
 _KEPT = 256
 
 
 def cached_structure(H, q0, p0, args=None):
-    """``structure(H, q0, p0, args)``, traced once per H, state shapes and dtypes and args'
-    structure (it reads nothing else), so that a loop of ``step`` calls does not trace grad H
-    at every call. An H that cannot be hashed is read anew."""
+    """``structure(H, q0, p0, args)``, read once per H, state shapes and dtypes, args' structure
+    and H's program (it reads nothing else), so that a loop of ``step`` calls traces H but not
+    its gradient at every call. An H that cannot be hashed or traced is read anew."""
+    program = _program(H, q0, p0, args)
     try:
-        key = (H, _spec(q0), _spec(p0), None if args is None else _spec(args))
-        found = _STRUCTURES.get(key)
+        key = (H, _spec(q0), _spec(p0), None if args is None else _spec(args), program)
+        found = None if program is None else _STRUCTURES.get(key)
     except TypeError:
         return structure(H, q0, p0, args)
     if found is None:

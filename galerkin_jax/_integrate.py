@@ -6,11 +6,11 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from . import _adjoint, _checks, _output, _reversible, _shape, _span
+from . import _adjoint, _checks, _inputs, _output, _reversible, _shape, _span
 from ._controllers import Event, Events, PIDController, TimeTransform
 from ._explicit import explicit_form
 
-from ._march import (bind_args, input_status, march, nan_if_failed, reserved_to_t1, short_of_t1, solve_element,
+from ._march import (bind_args, density_in_direction, input_status, march, nan_if_failed, reserved_to_t1, short_of_t1, solve_element,
                      solver_options, in_direction)
 from ._output import DenseOutput
 from ._pytree import pytree_dataclass
@@ -193,9 +193,10 @@ def prepare(H, q0, p0, method, h, args):
     fn = bind_args(H, args)
     _checks.check_scalar_output(fn, q0, p0)
     _checks.check_premise(method, fn, q0, p0)
-    return q0, p0, None if h is None else jnp.asarray(h, q0.dtype)
+    return q0, p0, None if h is None else _span.as_value(h, q0.dtype)
 
 
+@_inputs.on_entry
 @_shape.on_step
 def step(H, q, p, *, method, h, args=None, max_newton_iterations=None, krylov=None, solver=None, throw=False,
          return_status=False) -> tuple:
@@ -240,6 +241,7 @@ def _step(H, q, p, method, h, args, options):
     return q1, p1, jnp.maximum(status, input_status(q, p, h))
 
 
+@_inputs.on_entry
 @_shape.on_integrate
 def integrate(
     H,
@@ -401,12 +403,13 @@ def _directed(run):
     known = isinstance(sigma, int)
     if (known and sigma == 1) or (not known and not problem.method.hamiltonian):
         # forwards; or a Lagrangian, which has no sigma H: a traced t1 < t0 is INVALID_INPUT in the run
-        return _dispatch(_replace(run, span=dict(t0=jnp.asarray(span.t0, dtype), direction=_output.FORWARDS)))
+        return _dispatch(_replace(run, span=dict(t0=_span.as_value(span.t0, dtype), direction=_output.FORWARDS)))
     if not problem.method.hamiltonian:
         raise ValueError("t1 < t0 (a run backwards in time) needs a Hamiltonian method; LagrangianVI is given L.")
     H, args = in_direction(problem.H, problem.args, sigma)
-    into = lambda x: None if x is None else _output.directed(jnp.asarray(x, dtype), sigma)
-    sol = _dispatch(_replace(run, problem=dict(H=H, args=args), span=dict(t0=into(span.t0), t1=into(span.t1)),
+    controller = density_in_direction(problem.controller, sigma)
+    into = lambda x: None if x is None else _output.directed(_span.as_value(x, dtype), sigma)
+    sol = _dispatch(_replace(run, problem=dict(H=H, args=args, controller=controller), span=dict(t0=into(span.t0), t1=into(span.t1)),
                              outputs=dict(ts=into(run.outputs.ts))))
     back = lambda x: _output.directed(x, sigma)
     dense = None if sol.dense is None else dataclasses.replace(
@@ -432,22 +435,24 @@ def _dispatch(run):
     if n_steps is not None:
         _checks.check_counts(n_steps, 1)
         span = dataclasses.replace(span, t1=t0 + n_steps * h, n_steps=None)
-    span = dataclasses.replace(span, t1=jnp.asarray(span.t1, dtype))
-    concrete = _span.concrete(h, t0, span.t1)
+    span = dataclasses.replace(span, t1=_span.as_value(span.t1, dtype))
+    # where h, t0 and t1 are known while tracing (concrete, or differentiated outside jit) the
+    # elements are counted now; the last one's length stays a function of them (its derivatives)
+    known = all(_span.known(x) is not None for x in (h, t0, span.t1))
     if max_steps is not None:
         _span.check_max_steps(max_steps)
     if problem.controller is None and outputs.ts is None and outputs.events is None:
         if outputs.save_every != 1:
             raise ValueError("save_every needs n_steps; with t1, pass save_at=times to save at chosen times.")
-        if concrete and max_steps is None:
-            n, h_last = _span.fixed_step_count(t0, span.t1, h)
-            return fixed(dataclasses.replace(span, h_last=jnp.asarray(h_last, dtype), n_steps=n))
+        if known and max_steps is None:
+            n, _ = _span.fixed_step_count(*(_span.known(x) for x in (t0, span.t1, h)))
+            return fixed(dataclasses.replace(span, h_last=(span.t1 - t0) - (n - 1) * h, n_steps=n))
         if max_steps is None:
             raise ValueError("Fixed steps to a traced t1 (or with a traced h) need max_steps: the elements reserved.")
         return fixed(dataclasses.replace(span, n_steps=max_steps))
     if max_steps is None:
-        max_steps = (_span.fixed_step_count(t0, span.t1, h)[0] if problem.controller is None and concrete
-                     else DEFAULT_MAX_STEPS)
+        max_steps = (_span.fixed_step_count(*(_span.known(x) for x in (t0, span.t1, h)))[0]
+                     if problem.controller is None and known else DEFAULT_MAX_STEPS)
     # a loop saves at ts or every node, and shows no progress bar: those options are not its program's
     return _integrate_adaptive(dataclasses.replace(run, span=dataclasses.replace(span, max_steps=max_steps),
                                                    outputs=dataclasses.replace(outputs, save_every=1),
@@ -564,6 +569,7 @@ def _integrate_adaptive(run):
                     dense=dense_output, events=found)
 
 
+@_inputs.on_entry
 @_shape.on_amplification
 def amplification_matrix(H, q, p, *, method, h, args=None, solver=None) -> jax.Array:
     """A = d z_1 / d z_0 of one element, by ``jax.jacfwd`` through the implicit solve [GBS, eq. (48)].

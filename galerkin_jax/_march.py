@@ -12,6 +12,7 @@ element's rounding is the plain scheme's; docs/performance.md, "Explicit element
 force it hands the next element, and its counts (``explicit_start``).
 """
 
+import dataclasses
 import functools
 import inspect
 import math
@@ -42,6 +43,13 @@ def _time_directed(H):
     return lambda q, p, directed_args: directed_args[0] * H(q, p, *directed_args[1:])
 
 
+@functools.lru_cache(maxsize=None)
+def _directed_density(s):
+    """A time transformation's s(q, p[, args]) with sigma carried in front of its arguments, as
+    ``_time_directed``'s H has it: the density is the run's in either direction."""
+    return lambda q, p, directed_args: s(q, p, *directed_args[1:])
+
+
 def in_direction(H, args, sigma):
     """``(H~, args~)`` of the run in tau = sigma t, sigma = sign(t1 - t0): Hamilton's flow in
     tau is dz/dtau = sigma J DH(z) = J D(sigma H)(z), a run forwards of sigma H (H(q, p) or
@@ -51,6 +59,15 @@ def in_direction(H, args, sigma):
     if isinstance(sigma, int):
         return (H if sigma == 1 else time_reversed(H)), args
     return _time_directed(H), (sigma,) if args is None else (sigma, args)
+
+
+def density_in_direction(controller, sigma):
+    """The controller of the run ``in_direction`` makes: a ``TimeTransform``'s own s reads the
+    args~ = (sigma, *args) of a traced sigma as its H~ does (``_directed_density``)."""
+    s = getattr(controller, "s", None)
+    if s is None or isinstance(sigma, int):
+        return controller
+    return dataclasses.replace(controller, s=_directed_density(s))
 
 
 def input_status(q0, p0, h):

@@ -18,6 +18,13 @@ def concrete(*xs):
     return all(not isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(xs))
 
 
+def as_value(x, dtype):
+    """``x`` as an array of ``dtype`` that stays concrete where x is (a NumPy array: under ``jit``
+    a ``jnp`` conversion of a Python number is traced), so that a run under ``jit`` with a
+    Python ``t1`` or ``h`` plans its elements as the same run outside it does."""
+    return jnp.asarray(x, dtype) if isinstance(x, jax.core.Tracer) else np.asarray(x, dtype)
+
+
 def known(x):
     """``float(x)`` where x's value is known while tracing (concrete, or a JVP tracer of a concrete
     value, as under ``jax.grad`` outside ``jit``), else None."""
@@ -60,9 +67,10 @@ def check_span(n_steps, t0, t1, controller):
         if n_steps is not None:
             raise ValueError("A controller chooses the steps: give t1 (the end time), not n_steps.")
     if t1 is not None:
+        if concrete(t1) and jnp.ndim(t1) == 0 and np.isinf(float(t1)):
+            raise ValueError(f"t1 must be finite, got {float(t1)}: to run until a terminal event, give a t1 beyond "
+                             "it (the run ends at the event) and, with a controller, a max_steps that reaches it.")
         _scalar("t1", t1)
-        if concrete(t0, t1) and float(t1) == float(t0):
-            raise ValueError(f"t1 must differ from t0 (t1 < t0 runs backwards), got t0 = t1 = {float(t0)}.")
 
 
 def check_controller(controller, method, batch=None):
@@ -186,6 +194,10 @@ def check_event(event, q0, p0, t0):
     except TypeError as error:
         raise TypeError(f"Event.g could not be called as g(t, q, p): {error}") from error
     shape = getattr(out, "shape", None)
+    if shape == () and getattr(out, "dtype", None) == bool:
+        raise TypeError(f"Event.g ({_name(event.g)}) returns a boolean: an event is located where g changes "
+                        "sign, to round-off, which a condition cannot tell. Return a number whose sign changes "
+                        "there instead, e.g. q[0] - 1.0 for the condition q[0] > 1.0.")
     if shape != ():
         got = f"an array of shape {shape}" if shape is not None else f"{type(out).__name__}"
         raise ValueError(f"Event.g ({_name(event.g)}) must return a scalar, got {got} (q0 of shape "

@@ -115,5 +115,15 @@ def check_state(q0, p0):
     for name, xs in (("q0", qs), ("p0", ps)):
         for path, x in zip(paths, xs):
             if _concrete(x) and not np.all(np.isfinite(np.asarray(x))):
-                raise ValueError(f"{name}{path} must be finite, got {x}.")
+                raise ValueError(f"{name}{path} must be finite, got {non_finite(x)}.")
     return q_tree.unflatten(qs), p_tree.unflatten(ps)
+
+
+def non_finite(x):
+    """Where a concrete array is not finite, in a few words: ``3 of 100 entries are not finite,
+    the first nan at index (0,)``, however large the array."""
+    values = np.asarray(x)
+    bad = ~np.isfinite(values)
+    first = np.unravel_index(int(np.argmax(bad)), values.shape) if values.ndim else ()
+    return (f"{int(bad.sum())} of {values.size} entries not finite, the first {values[first]} at index "
+            f"{tuple(int(i) for i in first)}")
