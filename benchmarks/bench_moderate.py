@@ -1,4 +1,4 @@
-"""Untuned moderate systems (issue 37, item 1): galerkin_jax against diffrax and the integrators
+"""Untuned moderate systems: galerkin_jax against diffrax and the integrators
 a user of each field would write, at a largest relative energy error of 1e-6, 1e-8 and 1e-10.
 
     python -m benchmarks moderate [--quick] [--only LJ13 LJ55 Morse13 Morse55 Plummer32 Chain10]
