@@ -36,7 +36,7 @@ def sources(root):
             found.append((name, (root / name).read_text()))
     for path in sorted((root / "galerkin_jax").glob("*.py")):
         tree = ast.parse(path.read_text())
-        for node in [tree, *ast.walk(tree)]:
+        for node in ast.walk(tree):
             if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
                 doc = ast.get_docstring(node)
                 if doc:
@@ -44,7 +44,7 @@ def sources(root):
     return found
 
 
-def test_names(root):
+def defined_tests(root):
     """Every ``def test_...`` of tests/, by file."""
     names = {}
     for path in (root / "tests").glob("test_*.py"):
@@ -77,7 +77,7 @@ def _path(root, cited, where):
 
 def broken_citations(root):
     """Each citation in ``root``'s documents that names nothing, as ``(where, citation)``."""
-    names = test_names(root)
+    names = defined_tests(root)
     every_test = set().union(*names.values()) if names else set()
     broken = []
     for where, text in sources(root):
