@@ -1,12 +1,13 @@
 """Every script, test, file and anchor that the documentation names exists.
 
 The README, CONTRIBUTING.md, benchmarks/README.md, the pages of docs/ and the docstrings of the
-package name files (`benchmarks/bench_peers.py`, `tests/test_sweep.py`, `results/peers.md`),
-tests (`tests/test_sweep.py::test_name`, or a bare `test_name`), benchmark commands
-(`python -m benchmarks peers --only fput`) and sections of pages (`docs/solver.md#newton`). A
-removed script or a renamed test must not stay cited: each citation is checked here, a test name
-by parsing the test files for its ``def``. (Links between the pages of docs/ are checked by the
-strict site build as well.)
+package, the benchmarks and the tests name files (`benchmarks/bench_peers.py`,
+`tests/test_sweep.py`, `results/peers.md`), tests (`tests/test_sweep.py::test_name`, or a bare
+`test_name`), benchmark commands (`python -m benchmarks peers --only fput`) and sections of
+pages (`docs/solver.md#newton`, or docs/solver.md, "Newton"). A removed script or a renamed
+test must not stay cited: each citation is checked here, a test name by parsing the test files
+for its ``def``. (Links between the pages of docs/ are checked by the strict site build as
+well.) This file's own examples are not read.
 """
 
 import ast
@@ -23,6 +24,7 @@ PATH = re.compile(r"(?<![\w/.:@-])((?:benchmarks|tests|notebooks|galerkin_jax|do
 BARE_FILE = re.compile(r"(?<![\w/.:-])((?:bench|test)_\w+\.py)(?:::(test_\w+))?")
 BARE_TEST = re.compile(r"`(test_\w+)`")
 COMMAND = re.compile(r"python -m benchmarks ([a-z_]+)((?: +(?:--[\w-]+|[a-z_0-9.]+))*)")
+SECTION = re.compile(r"((?:docs|notes)/[\w-]+\.md),? \"([^\"]+)\"")
 LINK = re.compile(r"\]\((?!https?:|mailto:)([^)\s#]*)(?:#([^)\s]+))?\)")
 PLACEHOLDER = re.compile(r"NAME|COMMIT|WHAT|<")
 
@@ -34,7 +36,10 @@ def sources(root):
             str(p.relative_to(root)) for p in (root / "docs").glob("*.md"))]:
         if (root / name).exists():
             found.append((name, (root / name).read_text()))
-    for path in sorted((root / "galerkin_jax").glob("*.py")):
+    for path in sorted([*(root / "galerkin_jax").glob("*.py"), *(root / "benchmarks").glob("*.py"),
+                        *(root / "tests").glob("*.py")]):
+        if path.name == "test_citations.py":
+            continue
         tree = ast.parse(path.read_text())
         for node in ast.walk(tree):
             if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
@@ -62,8 +67,13 @@ def slug(heading):
     return re.sub(r"[-\s]+", "-", text)
 
 
+def headings(path):
+    """The titles of a Markdown file's headings, without their code marks."""
+    return [m[1].replace("`", "") for m in re.finditer(r"^#{1,6} +(.*?) *#*$", path.read_text(), re.MULTILINE)]
+
+
 def anchors(path):
-    return {slug(m[1]) for m in re.finditer(r"^#{1,6} +(.*?) *#*$", path.read_text(), re.MULTILINE)}
+    return {slug(title) for title in headings(path)}
 
 
 def _path(root, cited, where):
@@ -110,6 +120,11 @@ def broken_citations(root):
             for word in match[2].split():  # an option or a part's name: a string in the script
                 if f'"{word}"' not in source and not re.fullmatch(r"[\d.e-]+", word):
                     broken.append((where, f"{match[0]}: {word}"))
+        for match in SECTION.finditer(text):  # a page and a section's title: docs/accuracy.md, "Dense output"
+            target = root / match[1]
+            titles = headings(target) if target.exists() else []
+            if not any(title.startswith(" ".join(match[2].split())) for title in titles):
+                broken.append((where, match[0]))
         if where.endswith(".md") and not where.startswith("docs/"):
             for match in LINK.finditer(text):
                 target = (root / pathlib.Path(where).parent / match[1]) if match[1] else root / where
@@ -138,7 +153,8 @@ def test_a_removed_script_or_test_stays_cited_no_more(tmp_path):
     (tmp_path / "README.md").write_text(
         "`python -m benchmarks peers --only kepler` (`results/peers.md`), "
         "`tests/test_sweep.py::test_a_sweep`, `test_a_sweep`, "
-        "[Newton](docs/guide.md#newtons-method), `git show abc:benchmarks/bench_gone.py`, "
+        "[Newton](docs/guide.md#newtons-method) (docs/guide.md, \"Newton's method\"), "
+        "`git show abc:benchmarks/bench_gone.py`, "
         "`benchmarks/bench_NAME.py`.\n")
     assert broken_citations(tmp_path) == []
 
@@ -150,6 +166,7 @@ def test_a_removed_script_or_test_stays_cited_no_more(tmp_path):
         ("README.md", "tests/test_sweep.py::test_a_sweep"),
         ("README.md", "test_a_sweep"),
         ("README.md", "](docs/guide.md#newtons-method)"),
+        ("README.md", 'docs/guide.md, "Newton\'s method"'),
         ("galerkin_jax/_x.py:1", "bench_peers.py"),
     ])
 
