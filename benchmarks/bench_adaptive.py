@@ -1,4 +1,4 @@
-"""Adaptive steps (issue 22, item 9): galerkin_jax's PIDController and TimeTransform against
+"""Adaptive steps: galerkin_jax's PIDController and TimeTransform against
 diffrax Dopri8 + PID and Tsit5 + PID, and against uniform steps over long runs.
 
     python -m benchmarks adaptive [--quick] [--only a b c] [--orbits 1000] [--e 0.9]

@@ -11,8 +11,9 @@ program's size: StableHLO operations of the lowered module (``lowered.as_text()`
 ``tests/test_program.py`` budgets) and the kernels (fusions) XLA compiled, which set the
 compile time (about 4-8 ms each on this CPU). diffrax's equivalent runs in the same process,
 with the same state and span: Dopri8 with a constant step or with its PID controller (and
-Tsit5 for the run kinds the issue compared). Results: ``results/compile.json``. (The CLI and
-the README's tour with the compilation cache, parts ``cli`` and ``tour``: a study at 8777906.)
+Tsit5 for the forward run kinds). Results: ``results/compile.json``. (The CLI and the README's
+tour with the compilation cache were measured once by parts ``cli`` and ``tour``, since removed:
+notes/README.md.)
 """
 
 import argparse

@@ -1,4 +1,4 @@
-"""Untuned moderate systems (issue 37, item 1): galerkin_jax against diffrax and the integrators
+"""Untuned moderate systems: galerkin_jax against diffrax and the integrators
 a user of each field would write, at a largest relative energy error of 1e-6, 1e-8 and 1e-10.
 
     python -m benchmarks moderate [--quick] [--only LJ13 LJ55 Morse13 Morse55 Plummer32 Chain10]
@@ -18,7 +18,7 @@ PIDController and iterating to 1e-10 instead of round-off; its explicit elements
 separable systems (``EXPLICIT``); diffrax Tsit5 and Dopri8, fixed steps and PID; velocity Verlet
 and its triple jump (separable systems), the implicit midpoint rule and its triple jump (the
 chain), in plain JAX (``_peers``). No TimeTransform: the softened Plummer sphere has no close
-encounters to follow (with its default s a first try compiled in 58 s; docs/performance.md).
+encounters to follow (with its default s a first try compiled in 58 s; notes/performance-studies.md).
 
 For each solver and accuracy the cheapest run that meets it (``cheapest``): the knob on a grid
 of ratio 2^(1/4) (steps) or 10^(1/4) (tolerances), searched by predictions from the error's

@@ -1,4 +1,4 @@
-"""Hard first elements: the solver's iterations against plain Newton's (issue 23).
+"""Hard first elements: the solver's iterations against plain Newton's.
 
     python -m benchmarks stress
 
@@ -7,7 +7,7 @@ near-collisions, a non-separable H, every method family; one element from the co
 this records plain Newton's iterations (a fresh dense Jacobian every iteration, full steps,
 written in the test independently of the library), the solver's at the default options and
 with the watchdog off (``SolverOptions(watch=0)``: halving from the first full step that
-raises the residual, as before issue 23), the ratio to plain Newton, the status, and the
+raises the residual, the watchdog's alternative), the ratio to plain Newton, the status, and the
 distance between the two roots in units of eps times the state's size, and the element
 tangent that derivatives solve, matrix-free (Richardson's iteration, then GMRES) at plain
 Newton's root against LU's, in units of eps cond(dR/dZ) (``test_stress.tangent_error``). Writes

@@ -62,9 +62,7 @@ class PIDController:
             it halves h, as Radau5 does after a Newton failure (Hairer and Wanner, Sec. IV.8); diffrax cuts by
             ``factormin``. A failed solve says the step was too long for the solve, not by how
             much: a cut by 0.2 leaves the estimate so small that the controller grows h about
-            four times and fails again ([Where a controlled run's time
-            goes](performance.md#where-a-controlled-runs-time-goes), "What goes wrong at loose
-            tolerances").
+            four times and fails again.
         predictive: bound the factor by Gustafsson's predictive controller (above); default
             True. False (with ``failfactor=factormin``) gives diffrax's controller. Static.
         force_dtmin: accept a step of h <= dtmin whose error exceeds the tolerance and go on at

@@ -27,8 +27,8 @@ h and alpha. For cG(k), ``order`` = 2k + 1: k evaluations on 2k points. Measured
 inside is 0.82 to 1.00 times z1's local error, of its order (cG(2), cG(4), cG(6) on Kepler,
 a non-polynomial H, a time-transformed Kepler: ``tests/test_interpolate.py``); over 100
 orbits of a time-transformed Kepler e = 0.99 the energy error between the nodes is 1.01 to
-1.25 times the nodes' per orbit (``bench_interpolate.py`` (a study at 1632fa2), docs/accuracy.md,
-"States between the nodes").
+1.25 times the nodes' per orbit (the one-off ``interpolate`` study of notes/README.md;
+docs/accuracy.md, "States between the nodes").
 
 A time-transformed run (``TimeTransform``) passes the Hamiltonian it solves, the Poincare
 K on the extended state z = (q, t, p, p_t), its step h in tau and its alpha in tau: w~ has

@@ -8,7 +8,7 @@ summation (Kahan: the increments of many small elements are added without losing
 low bits, so round-off grows like sqrt(n)), the predictor's history, the iteration matrix,
 the first failure's status, Newton counts and the largest local error estimate. An element
 in closed form (``_explicit``) carries only what it needs: the state, summed plainly (one
-element's rounding is the plain scheme's; docs/performance.md, "Explicit elements"), the
+element's rounding is the plain scheme's; notes/performance-studies.md, "Explicit elements"), the
 force it hands the next element, and its counts (``explicit_start``).
 """
 
@@ -410,7 +410,7 @@ def explicit_start(method, H_bound, q0, p0, h):
     """The carry of a run of explicit elements (``_explicit``): the state q, p, the memo one
     element hands the next (the force), the start values a failed run carries from then on,
     the status, the elements solved and taken. The state is summed without compensation: one
-    element's rounding is that of the plain scheme (docs/performance.md, "Explicit elements")."""
+    element's rounding is that of the plain scheme (notes/performance-studies.md, "Explicit elements")."""
     memo = method.explicit_start(H_bound, q0, p0)
     zero = jnp.zeros((), jnp.int32)
     return dict(q=q0, p=p0, memo=memo, q0=q0, p0=p0, memo0=memo, status=input_status(q0, p0, h), steps=zero,

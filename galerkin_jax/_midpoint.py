@@ -130,7 +130,7 @@ class DiscreteGradient(_Increment):
     # perihelion passages (r < 0.7), -3e-5 eps a step on average, a drift that outgrows the
     # round-off's random walk from 10^6 steps on. One more fixed-point update
     # (``AbstractMethod.settle``), one residual an element, leaves -1.5e-5, +0.2e-6, +3.1e-6
-    # (+- 9e-6) eps a step in three runs (docs/performance.md, "How the energy error was
+    # (+- 9e-6) eps a step in three runs (notes/performance-studies.md, "How the energy error was
     # brought to sqrt(n) eps").
     settle = 1
 

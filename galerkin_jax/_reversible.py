@@ -1,5 +1,5 @@
 """Reversible gradients of a fixed-step run: memory O(1) in the number of elements
-(``integrate(..., checkpoint="reversible")``, issue 45).
+(``integrate(..., checkpoint="reversible")``).
 
 A symmetric one-step method is reversible: Phi_{-h} o Phi_h = id [HLW, Def. V.1.4], so the
 state at node n is rebuilt from node n + 1 by one element of step -h, z_n = Phi_{-h}(z_{n+1}),

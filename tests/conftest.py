@@ -12,7 +12,7 @@ import pytest
 # tests/test_compile_flags.py compares come out the same bit for bit; others, as on another CPU,
 # may not, and the suite's claims hold with margins that such rounding keeps. The notebooks, whose
 # committed outputs are compared digit by digit, run with the user's flags (``user_xla_flags``).
-# What was measured: docs/performance.md, "Compile time". Set here, before the backend starts,
+# What was measured: notes/performance-studies.md, "Compile time". Set here, before the backend starts,
 # and inherited by pytest-xdist's workers and every subprocess. A jaxlib that does not know an
 # option would abort at its first computation: probes in subprocesses keep those it knows, once,
 # in the process that starts the workers, and record the verdict in GALERKIN_JAX_TEST_FLAGS; set

@@ -3,7 +3,7 @@
 Each output of a run whose steps are chosen as it runs is defined once, as a function of the
 element that writes it (``_adjoint._kinds``); forward mode takes its ``jax.jvp`` and reverse
 mode its ``jax.vjp``. The first tests below are the combinations that gave wrong answers with
-status 0 before that (project issue 43), each against an exact solution or central
+status 0 before each output had one definition, each against an exact solution or central
 differences of the whole run; the last one draws combinations at random (hypothesis).
 """
 

@@ -1,4 +1,4 @@
-"""Structure read from H (gj.structure), explicit elements and compositions (issue 44)."""
+"""Structure read from H (gj.structure), explicit elements and compositions."""
 
 import functools
 

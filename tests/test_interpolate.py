@@ -2,7 +2,7 @@
 refined by Picard sweeps has the nodes' local order. Each element starts on the exact orbit,
 so the error inside it is the local error of the interpolant against the exact flow, and the
 node's is the local error of z1; measured over three h (docs/accuracy.md, "States between
-the nodes"; bench_interpolate.py (a study at 1632fa2) for the runs)."""
+the nodes")."""
 
 import functools
 

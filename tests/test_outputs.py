@@ -228,7 +228,7 @@ def test_save_times_have_the_nodes_accuracy():
     """Between the nodes a run reads its element polynomial refined to the nodes' accuracy
     (``_output.refined``). Kepler e = 0.9, cG(6) + Gauss 6, PID 1e-8 over one orbit: the largest
     error at 200 save times against the exact orbit is 0.73x the nodes' (measured: 5.0e-14 and
-    6.8e-14; the element polynomial alone gave 5.8e-10 against 9.1e-14). Bound: 10x, the issue's."""
+    6.8e-14; the element polynomial alone gave 5.8e-10 against 9.1e-14). Bound: 10x."""
     method, pid = gj.CG(6, gj.gauss_legendre(6)), gj.PIDController(1e-8, 1e-8)
     ts = jnp.linspace(0.01, TWO_PI - 0.01, 200)
     saved = gj.integrate(H, Q0, P0, method=method, h=0.01, t1=TWO_PI, controller=pid, save_at=ts)

@@ -89,7 +89,7 @@ def test_a_step_is_the_root_of_the_element_equations_for_non_separable_H():
 
 def test_iterations_per_element_on_the_fput_chain():
     """cG(1) + midpoint on the 64-mass chain at h = 0.05 (h omega = 0.1): the plain fixed
-    point needs about 12 iterations per element, the sweep about 6.5 (``bench_solver.py`` at 8777906).
+    point needs about 12 iterations per element, the sweep about 6.5 (the one-off ``solver`` study).
     Asserted with room, an upper bound between the two: at most four blocks of two."""
     scene = scenes.fput(64)
     sol = gj.integrate(scene.H, scene.q0, scene.p0, method=gj.CG(1, gj.midpoint()), h=0.05, n_steps=1000,
@@ -116,7 +116,7 @@ def fput_run():
 def test_a_large_system_stops_at_the_round_off_floor_after_five_updates(fput_run):
     """cG(3) + Gauss 3 on the 64-mass chain (384 unknowns), h = 0.05: the fixed point's rate,
     judged by the last two updates of a block, stops most elements after four updates and the
-    polish (``bench_solver.py`` at 8777906: about five per element), and the unknowns it accepts are the
+    polish (the one-off ``solver`` study: about five per element), and the unknowns it accepts are the
     root: solved by the same stopping rule from every third node of the run (from the constant
     predictor, about seven updates), 200 more sweeps move them by 0.01 eps of their size on
     average, at most 0.9 eps. Margins: one update per element; 3 eps."""
@@ -140,7 +140,7 @@ def test_a_large_system_stops_at_the_round_off_floor_after_five_updates(fput_run
 def test_the_first_block_of_four_changes_no_number(fput_run):
     """A system of more than 32 unknowns starts each element with a block of four updates, not
     two (``SolverOptions.first_block``): the check after two, which on the chain never accepts,
-    is skipped (``bench_solver.py`` at 8777906). The iterates, the counts and the result are those of
+    is skipped (the one-off ``solver`` study). The iterates, the counts and the result are those of
     blocks of two, bitwise."""
     _, _, first = fput_run
     _, _, pairs = fput_cg3(1000, solver=gj.SolverOptions(first_block=2))

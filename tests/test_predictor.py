@@ -68,7 +68,7 @@ def iterations(scene, method, h, n_steps, orders):
 def test_order_six_saves_fixed_point_blocks_where_the_misses_are_smooth():
     """Kepler e = 0.6, cG(3) + Gauss 3, h = 0.01: the choice of orders (2, 6) takes a block of
     two updates fewer in most elements than the linear extrapolation alone (the figures are
-    ``bench_solver.py`` at 8777906); asserted with room: at least one update fewer per element. The
+    the one-off ``solver`` study); asserted with room: at least one update fewer per element. The
     two runs agree to round-off (the same roots)."""
     scene = scenes.kepler(0.6)
     method = gj.CG(3, gj.gauss_legendre(3))

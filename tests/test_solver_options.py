@@ -1,4 +1,4 @@
-"""``gj.SolverOptions`` (issue 23, items 5 and 8): one frozen options object for the implicit
+"""``gj.SolverOptions``: one frozen options object for the implicit
 solve, its shorthands, ``throw=``, ``step``'s status and the count of elements accepted short
 of the round-off criterion."""
 
@@ -183,15 +183,14 @@ def test_a_tolerance_stops_the_iteration_early_at_an_error_of_that_size():
 
 
 @pytest.mark.parametrize("k, h, newton, sweep", [(6, 0.1, 3.86, 4.12), (2, 0.05, 3.91, 4.80)])
-def test_the_levers_of_issue_44_save_updates_at_large_h_and_reach_the_same_root(k, h, newton, sweep):
+def test_newton_and_the_sweep_save_updates_at_large_h_and_reach_the_same_root(k, h, newton, sweep):
     """Kepler e = 0.6, cG(k) + Gauss k, 400 elements at h omega far from small: the default
     (fixed point with R, d = 2 <= sweep_dimension) takes 6.24 (cG(6), h = 0.1) and 6.34 (cG(2),
     h = 0.05) updates an element; simplified Newton with a kept matrix (``theta_fixed_point``
     tiny) 3.86 and 3.91, the Gauss-Seidel sweep (the position-only form of a separable H,
     ``sweep_dimension=1``) 4.12 and 4.80 (measured), and both end within 3.3e-14 of the default's
     state (|z| ~ 1; asserted 1e-12: round-offs of 400 elements). Neither is the default: fewer
-    updates, not less time (docs/solver.md, "Fewer updates: the levers of issue 44, measured";
-    ``bench_iterations.py`` (a study at 1632fa2))."""
+    updates, not less time (notes/solver-design.md, "Fewer updates")."""
     method = gj.CG(k, gj.gauss_legendre(k))
     runs = {name: gj.integrate(KEPLER.H, KEPLER.q0, KEPLER.p0, method=method, h=h, n_steps=400, solver=solver)
             for name, solver in (("default", gj.SolverOptions()), ("newton", gj.SolverOptions(theta_fixed_point=1e-12)),

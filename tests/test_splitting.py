@@ -1,4 +1,4 @@
-"""Splitting methods for separable H (gj.Splitting, issue 44 item 3): Blanes and Moan's schemes."""
+"""Splitting methods for separable H (gj.Splitting): Blanes and Moan's schemes."""
 
 import jax
 import jax.numpy as jnp

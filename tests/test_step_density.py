@@ -1,8 +1,8 @@
-"""The time transformation's default step density where Hamilton's field vanishes (issue 36,
-item 5; docs/adaptive.md, "Where Hamilton's field vanishes"): the pendulum at rest, at its
+"""The time transformation's default step density where Hamilton's field vanishes
+(docs/adaptive.md, "Where Hamilton's field vanishes"): the pendulum at rest, at its
 saddle and near its separatrix, Henon-Heiles near its equilibrium, Kepler from apocentre as
 before and from pericentre at the cap's price, the cap itself, and K's closed-form gradient
-against autodiff of the same density. Figures: ``bench_density_bound.py`` (a study at 1632fa2)
+against autodiff of the same density. Figures: the one-off ``density_bound`` study of notes/README.md
 (cG(4) + Gauss 4, h = 0.2 in tau unless said)."""
 
 import jax
@@ -136,7 +136,7 @@ def test_kepler_from_apocentre_keeps_its_steps_and_energy_error():
     only scales s by at most (1 + k^2)^(3/8) = 1.021 near pericentre: 127 steps against 129
     unbounded, largest energy error 4.00e-7 against 4.05e-7. Bounds: steps within 3 %, the
     energy error within 1.5x of the unbounded run's (over 100 orbits in
-    ``bench_density_bound.py`` (a study at 1632fa2) part c: 1.7-1.9 % fewer steps, energy errors 0.74-1.37x, where
+    the ``density_bound`` study, part c: 1.7-1.9 % fewer steps, energy errors 0.74-1.37x, where
     changing s_max from 10 to inf, s by 1e-4, moves them by up to 6x at e = 0.99)."""
     q0, p0 = kepler_at(0.9, "apocentre")
     T5 = 5 * 2 * np.pi

@@ -1,4 +1,4 @@
-"""Hard first elements (issue 23): the solver against plain Newton.
+"""Hard first elements: the solver against plain Newton.
 
 Each case is one element from the constant guess, where the predictor has no history: large
 h omega, large momenta, near-collisions, a non-separable H, every method family. The reference
@@ -40,7 +40,7 @@ def nonseparable(q, p):
 
 
 QUARTIC = scenes.quartic().H
-HIGH = (np.array([1.0, 0.0, 0.0]), np.array([100.0, 70.99, 94.66]))  # issue 23's element
+HIGH = (np.array([1.0, 0.0, 0.0]), np.array([100.0, 70.99, 94.66]))  # the quartic force at high momentum
 KEPLER_95 = scenes.kepler(0.95)
 PERICENTRE = (np.asarray(KEPLER_95.q0), np.asarray(KEPLER_95.p0))  # |q| = 0.05, |p| = 6.2
 FPUT = scenes.fput(16)
@@ -146,8 +146,8 @@ def test_hard_first_element_reaches_plain_newtons_root_within_a_small_multiple_o
 
 @pytest.mark.parametrize("name", [name for name in CASES if name.startswith("quartic high momentum, ") and
                                   name.split(", ")[1] in ("cG(1) + Lobatto 2", "cG(2) + Gauss 2", "dG(1) + Gauss 2")])
-def test_the_issue_elements_need_the_watchdog_for_the_bound(name):
-    """Issue 23's elements: with ``watch=0`` (halving from the first full step that raises the
+def test_the_quartic_high_momentum_elements_need_the_watchdog_for_the_bound(name):
+    """The quartic force's elements at high momentum: with ``watch=0`` (halving from the first full step that raises the
     residual) the solver exceeds the bound of 3 x plain Newton's 4 iterations + 3 (measured
     26 to 32 iterations, ``bench_stress.py``); the watchdog keeps them within it."""
     H, q, p, method, h, _ = CASES[name]
