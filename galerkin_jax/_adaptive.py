@@ -33,7 +33,8 @@ import jax
 import jax.numpy as jnp
 
 from . import _output
-from ._controllers import PIDController, TimeTransform, embedded_error, poincare, scaled_error
+from ._controllers import (PIDController, TimeTransform, embedded_error, event_value, poincare, scaled_error,
+                           user_args)
 from ._defect import symplectic_field
 from ._explicit import is_explicit
 from ._march import (bind_args, compensated_add, continued, element_residual, input_status, peak_estimate, peak_start,
@@ -730,7 +731,8 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     guess = method.initial_guess(q0, p0)
     m = polynomial_size(method, H_bound, q0, p0)
     t0, t1 = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype)
-    tiny = 16 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1))
+    # a step below tiny does not move t (an infinite t1: run until a terminal event, at most max_steps)
+    tiny = 16 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t0), jnp.where(jnp.isfinite(t1), jnp.abs(t1), 0.0))
     pid, count = isinstance(controller, PIDController), None
     if pid:
         rule, memory = _pid_rule(controller, m, tiny, t1)
@@ -742,8 +744,9 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     else:
         count = element_count(t0, t1, h0)
         rule, memory = _constant_rule(t0, h0, t1)
-    gs = None if events is None else tuple(lambda t, z, g=event.g: g(_output.directed(t, sigma), *view(z))
-                                           for event in events)
+    reads = user_args(args, clock, sigma) if events is not None else None
+    gs = None if events is None else tuple(
+        lambda t, z, g=event.g: event_value(g, _output.directed(t, sigma), *view(z), reads) for event in events)
     # the closed form where the method has one for H (``_explicit``); a time-transformed run
     # solves K = s (H + p_t), whose structure is not H's: it iterates
     explicit = is_explicit(method) and clock is None

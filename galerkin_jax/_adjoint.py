@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 
 from . import _adaptive, _output
-from ._controllers import symbolic_zero as _symbolic_zero
+from ._controllers import event_value, symbolic_zero as _symbolic_zero, user_args
 from ._explicit import is_explicit
 from ._march import bind_args, continued, element_residual, state_scale
 from ._solve import Options, Status, implicit, initial_matrix, solve
@@ -411,18 +411,20 @@ def _save(clock, z, W, z1, t_n, h, ts, alpha, node):
     return _output.state_at(z, W, z1, alpha, node)
 
 
-def _event(g, sigma, clock, view, z, W, t_n, h, alpha):
+def _event(g, sigma, clock, view, z, W, t_n, h, alpha, args):
     """``(t*, z*, alpha*)``: an event's time (in the run's tau), state and place in an element,
     alpha* the root of g(sigma tau(alpha), w(alpha)) that the forward run located. A traced
-    sigma is an argument of the root's function (a value it closed over would be a constant of
-    a transformation that has not traced it); a known one is a constant of it."""
+    sigma and the run's args~ (which a g may read, ``_controllers.event_value``) are arguments of
+    the root's function (a value it closed over would be a constant of a transformation that has
+    not traced it); a known sigma is a constant of it."""
     traced = () if isinstance(sigma, int) else (sigma,)
 
-    def g_at(a, z, W, t_n, h, *traced):
-        t = _output.directed(_output.time_at(z, W, a, t_n, h, clock), traced[0] if traced else sigma)
-        return g(t, *view(_output.on_polynomial(z, W, a[None])[0]))
+    def g_at(a, z, W, t_n, h, args, *traced):
+        s = traced[0] if traced else sigma
+        t = _output.directed(_output.time_at(z, W, a, t_n, h, clock), s)
+        return event_value(g, t, *view(_output.on_polynomial(z, W, a[None])[0]), user_args(args, clock, s))
 
-    alpha = _output.root(g_at, alpha, (z, W, t_n, h, *traced))
+    alpha = _output.root(g_at, alpha, (z, W, t_n, h, args, *traced))
     return _output.time_at(z, W, alpha, t_n, h, clock), _output.on_polynomial(z, W, alpha[None])[0], alpha
 
 
@@ -499,7 +501,8 @@ class _Element:
             z, acc = carry
             z1, W, start, h = self.outputs(*hold(theta, z, *times))
             acc1 = None if spec.observe is None else spec.observe(acc, *_output.user_view(z1, self.clock))
-            return (z1, acc1), dict(z=z, W=W, z1=z1, start=start, h=h)
+            # args~: an event's g may read H's args (``_controllers.event_value``)
+            return (z1, acc1), dict(z=z, W=W, z1=z1, start=start, h=h, args=theta[1])
 
         return local
 
@@ -541,7 +544,7 @@ def _kinds(spec, inputs, c, clock, view):
         """``(t*, z*, alpha*)`` of the terminal event that ended the run in this element."""
         rows = [(k, e) for k, e in enumerate(spec.events) if e.terminal]
         branch = lambda e, k: lambda: _event(e.g, sigma, clock, view, local["z"], local["W"], local["start"],
-                                             local["h"], c["ev_alpha"][k][0])
+                                             local["h"], c["ev_alpha"][k][0], local["args"])
         index = sum(jnp.where(c["ended"] == k, i, 0) for i, (k, _) in enumerate(rows))
         return jax.lax.switch(index, [branch(e, k) for k, e in rows])
 
@@ -581,7 +584,7 @@ def _kinds(spec, inputs, c, clock, view):
         owner = jnp.where(c["ev_n"][k] < 0, _NOWHERE, c["ev_n"][k])
         kinds.append(_Rows((f"ev_t/{k}", f"ev_z/{k}"), owner,
                            lambda l, _, i, k=k, g=event.g: _event(g, sigma, clock, view, l["z"], l["W"], l["start"],
-                                                                  l["h"], c["ev_alpha"][k][i])[:2]))
+                                                                  l["h"], c["ev_alpha"][k][i], l["args"])[:2]))
     return kinds
 
 

@@ -334,6 +334,23 @@ class Event:
         check_event_fields(self.g, self.direction, self.terminal, self.capacity)
 
 
+def event_value(g, t, q, p, args):
+    """An event's g at (t, q, p): ``g(t, q, p)``, or ``g(t, q, p, args)`` with H's args where g
+    reads them (``reads_args``: a g whose closed-over values travel in args, ``_inputs.EventG``)."""
+    return g(t, q, p, args) if getattr(g, "reads_args", False) else g(t, q, p)
+
+
+def user_args(args, clock, sigma):
+    """H's args as the user's functions take them, from the args~ of the problem a loop solves:
+    a time transformation's ``(args, u)`` (``poincare``; ``clock`` not None), then a traced
+    direction's ``(sigma, args)`` (``_march.in_direction``; ``sigma`` not a Python int)."""
+    if clock is not None:
+        args = args[0]
+    if not isinstance(sigma, int):
+        args = args[1] if len(args) > 1 else None
+    return args
+
+
 def _integer(x):
     """An int or NumPy integer, not a bool."""
     return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))

@@ -5,13 +5,14 @@ Two things a user writes would otherwise not reach the programs as inputs:
 * ``args`` with leaves that are not arrays (an activation function of an ``eqx.nn.MLP``, an int
   that sizes a loop, a string): they are static, as equinox and diffrax treat them. ``args``
   is split into its array leaves, which the programs take (traced, differentiated, vmapped),
-  and the rest, which the wrapped function puts back (``Partitioned``; hashed with it, so a
-  new static value is a new program, the same one the same program).
+  and the rest, which the wrapped function puts back (``WithArgs``; hashed with it, so a new
+  static value is a new program, the same one the same program).
 * arrays that ``H``, an event's ``g`` or a ``TimeTransform``'s ``s`` close over while JAX traces
   them (a parameter of ``jax.grad``, ``jax.jit`` or ``jax.vmap`` captured in a lambda): each
-  function is closure-converted (``jax.closure_convert``) and its constants travel in ``args``
-  beside the user's, so they differentiate exactly as ``args`` does, by the one definition of
-  every derivative. A function that closes over no traced value is handed down as it is.
+  function is closure-converted (``closure_convert``) and its constants travel in ``args``
+  beside the user's (``Explicit``, ``EventG``), so they differentiate exactly as ``args`` does,
+  by the one definition of every derivative. A function that closes over no traced value is
+  handed down as it is.
 
 Arrays are JAX and NumPy arrays, NumPy scalars and Python floats and complex numbers (a float
 in ``args`` stays an input, as it always was); every other leaf is static.
@@ -25,7 +26,6 @@ from typing import Any, Callable
 import jax
 import numpy as np
 from jax._src import core as _core
-from jax._src.interpreters import partial_eval as _pe
 
 from ._controllers import Event, TimeTransform
 
@@ -110,6 +110,19 @@ class Explicit:
         return self.fn(*xs, arrays, *(() if self.key is None else consts[self.key]))
 
 
+@dataclasses.dataclass(frozen=True)
+class EventG:
+    """An event's g closure-converted: the library calls it ``g(t, q, p, bundle)`` (``reads_args``:
+    ``_controllers.event_value``), and it calls ``fn(t, q, p, *constants[key])``."""
+
+    fn: Callable
+    key: str
+    reads_args = True
+
+    def __call__(self, t, q, p, bundle):
+        return self.fn(t, q, p, *bundle[1][self.key])
+
+
 def tracing():
     """Whether a JAX transformation is tracing now (only then can a function close over a traced
     value)."""
@@ -139,51 +152,46 @@ def closure_convert(f, *example):
     return converted, [c for c, t in zip(closed.consts, traced) if t]
 
 
-def explicit_inputs(H, q0, p0, args, *, controller=None, events=None):
-    """``(H, args, controller)`` with every input of the user's functions explicit (module
-    docstring): the given objects where nothing needs converting, else ``Explicit`` functions
-    and ``args = (arrays, constants)``. An event's g that closes over a value being
-    differentiated raises a ValueError that says what to do instead.
+def explicit_inputs(H, q0, p0, args, *, controller=None, events=None, t0=0.0):
+    """``(H, args, controller, events)`` with every input of the user's functions explicit
+    (module docstring): the given objects where nothing needs converting, else ``Explicit``
+    functions (events: ``EventG``) and ``args = (arrays, constants)``.
 
     Args:
         q0, p0: the initial state in the user's shape, for tracing the functions.
         controller: a ``TimeTransform`` whose s is converted too; any other controller passes.
-        events: an ``Event`` or a list of them, or None (checked, not converted).
+        events: an ``Event`` or a list of them (their g converted), or None.
+        t0: the start time, for tracing the events' g.
     """
     arrays, spec = split(args)
     has_args = args is not None
     s = controller.s if isinstance(controller, TimeTransform) else None
+    event_list = [events] if isinstance(events, Event) else list(events or [])
     functions = {"H": WithArgs(H, spec, has_args)}
     if callable(s):
         functions["s"] = WithArgs(s, spec, has_args)
-    consts = {}
+    consts, converted_gs = {}, {}
     if tracing():
         for key, f in functions.items():
             converted, found = closure_convert(f, q0, p0, arrays)
             if found:
                 functions[key], consts[key] = converted, list(found)
-        _check_events(events, q0, p0)
+        t = jax.numpy.asarray(t0, q0.dtype)
+        for k, event in enumerate(event_list):
+            if isinstance(event, Event) and callable(event.g):
+                converted, found = closure_convert(event.g, t, q0, p0)
+                if found:
+                    converted_gs[k], consts[f"g{k}"] = converted, list(found)
     if spec is None and not consts:
-        return H, args, controller
+        return H, args, controller, events
     explicit = {k: Explicit(f, k if k in consts else None) for k, f in functions.items()}
     if "s" in explicit:
         controller = dataclasses.replace(controller, s=explicit["s"])
-    return explicit["H"], (arrays, consts), controller
-
-
-def _check_events(events, q0, p0):
-    """A ValueError where an event's g closes over a value that a derivative moves."""
-    for event in [events] if isinstance(events, Event) else list(events or []):
-        if not (isinstance(event, Event) and callable(event.g)):
-            continue
-        t = np.zeros((), q0.dtype)
-        _, found = jax.closure_convert(event.g, t, q0, p0)
-        if any(isinstance(x, _core.Tracer) and not isinstance(x, _pe.DynamicJaxprTracer) for x in found):
-            raise ValueError(
-                "Event.g closes over a value that is being differentiated (e.g. a threshold captured in a "
-                "lambda under jax.grad); an event time's derivative reads g's inputs t, q and p only. Write "
-                "the value into H's args and the event in terms of the state instead, or differentiate "
-                "with the value held constant.")
+    if converted_gs:
+        event_list = [dataclasses.replace(e, g=EventG(converted_gs[k], f"g{k}")) if k in converted_gs else e
+                      for k, e in enumerate(event_list)]
+        events = event_list[0] if isinstance(events, Event) else event_list
+    return explicit["H"], (arrays, consts), controller, events
 
 
 def on_entry(fn):
@@ -201,15 +209,18 @@ def on_entry(fn):
         H, q0, p0 = (given.get(name) for name in names)
         try:
             q0, p0 = jax.tree.map(jax.numpy.asarray, (q0, p0))
-            H, run_args, controller = explicit_inputs(H, q0, p0, given.get("args"),
-                                                      controller=given.get("controller"), events=given.get("events"))
-        except (TypeError, AttributeError):
+            H, run_args, controller, events = explicit_inputs(
+                H, q0, p0, given.get("args"), controller=given.get("controller"), events=given.get("events"),
+                t0=given.get("t0", 0.0))
+        except Exception:  # noqa: BLE001 -- bad input: the function's own checks name it
             return fn(*args, **kwargs)
         given[names[0]] = H
         if "args" in signature.parameters:
             given["args"] = run_args
         if given.get("controller") is not None:
             given["controller"] = controller
+        if given.get("events") is not None:
+            given["events"] = events
         return fn(*bound.args, **bound.kwargs)
 
     return public

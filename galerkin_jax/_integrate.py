@@ -295,9 +295,11 @@ def integrate(
         n_steps: the number of elements of size h; default None, then give ``t1``. Static; a
             multiple of ``save_every``.
         t0: the start time; default 0.0.
-        t1: the end time, != t0; default None, then give ``n_steps``. t1 < t0 runs backwards in
-            time (not with ``LagrangianVI``), also where t0 or t1 is traced (``jit``, ``vmap``
-            over t1 with members of both directions).
+        t1: the end time; default None, then give ``n_steps``. t1 < t0 runs backwards in time
+            (not with ``LagrangianVI``), also where t0 or t1 is traced (``jit``, ``vmap`` over t1
+            with members of both directions); t1 = t0 returns the initial state. An infinite t1
+            (``jnp.inf``, ``-jnp.inf``) runs until a terminal event ends it: at most ``max_steps``
+            attempts, which fixed steps then need.
         controller: what chooses the steps; default None, fixed steps of size h. Pass a
             ``PIDController`` for a short accurate run or a ``TimeTransform`` for a long one;
             either needs ``t1``.
@@ -360,7 +362,7 @@ def integrate(
         elsewhere it raises a ValueError.
     """
     q0, p0, h = prepare(H, q0, p0, method, h, args)
-    _span.check_span(n_steps, t0, t1, controller)
+    _span.check_span(n_steps, t0, t1, controller, events, max_steps)
     _span.check_controller(controller, method)
     if h is None and not isinstance(controller, PIDController):
         raise ValueError("h=None picks the first step of a PIDController's run; fixed steps and a TimeTransform "
@@ -373,7 +375,7 @@ def integrate(
         _reversible.check_reversible(method, controller=controller, save_at=save_at, events=events, dense=dense,
                                      traced_end=n_steps is None and not _span.concrete(h, t0, t1))
     single = isinstance(events, Event)
-    events = _span.check_events(events, q0, p0, t0)
+    events = _span.check_events(events, q0, p0, t0, args)
     sigma = _span.direction(t0, t1, q0.dtype)
     nodes = _span.check_nodes(save_at, save_every)
     ts = None if nodes else _span.check_save_at(save_at, t0, t1, q0.dtype, sigma)

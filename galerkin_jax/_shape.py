@@ -60,6 +60,11 @@ class Unflattened:
     layout: Layout
     position: int = 0
 
+    @property
+    def reads_args(self):
+        """An event's g that takes H's args (``_controllers.event_value``)."""
+        return getattr(self.fn, "reads_args", False)
+
     def __call__(self, *args):
         i = self.position
         q, p = (self.layout.unflatten(x) for x in args[i : i + 2])

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._controllers import Event, PIDController, TimeTransform, check_values, concrete_values
+from ._controllers import Event, PIDController, TimeTransform, check_values, concrete_values, event_value
 from ._method import layers
 
 
@@ -55,9 +55,10 @@ def _scalar(name, x):
         raise ValueError(f"{name} must be finite, got {float(x)}.")
 
 
-def check_span(n_steps, t0, t1, controller):
-    """Exactly one of ``n_steps`` and ``t1``; ``t1 != t0`` (t1 < t0 runs backwards); a controller
-    needs ``t1``."""
+def check_span(n_steps, t0, t1, controller, events=None, max_steps=None, sweep=False):
+    """Exactly one of ``n_steps`` and ``t1`` (t1 < t0 runs backwards; t1 = t0 returns the initial
+    state); a controller needs ``t1``; an infinite t1 runs until a terminal event (``events``):
+    with fixed steps at most ``max_steps`` elements."""
     if (n_steps is None) == (t1 is None):
         raise ValueError("Give exactly one of n_steps and t1 (the end time).")
     _scalar("t0", t0)
@@ -68,9 +69,21 @@ def check_span(n_steps, t0, t1, controller):
             raise ValueError("A controller chooses the steps: give t1 (the end time), not n_steps.")
     if t1 is not None:
         if concrete(t1) and jnp.ndim(t1) == 0 and np.isinf(float(t1)):
-            raise ValueError(f"t1 must be finite, got {float(t1)}: to run until a terminal event, give a t1 beyond "
-                             "it (the run ends at the event) and, with a controller, a max_steps that reaches it.")
-        _scalar("t1", t1)
+            _check_unbounded(float(t1), controller, events, max_steps, sweep)
+        else:
+            _scalar("t1", t1)
+
+
+def _check_unbounded(t1, controller, events, max_steps, sweep):
+    """An infinite t1: a run (not a sweep) that a terminal event ends, of at most max_steps."""
+    terminal = [events] if isinstance(events, Event) else list(events or [])
+    if sweep:
+        raise ValueError(f"sweep needs a finite t1, got {t1}: every configuration reaches it.")
+    if not any(isinstance(e, Event) and e.terminal for e in terminal):
+        raise ValueError(f"t1 = {t1} runs until a terminal event: pass events=gj.Event(g, terminal=True), or a finite "
+                         "t1.")
+    if controller is None and max_steps is None:
+        raise ValueError(f"Fixed steps to t1 = {t1} need max_steps: the most elements before the terminal event.")
 
 
 def check_controller(controller, method, batch=None):
@@ -172,8 +185,9 @@ def _check_order(values, backwards):
                          f"{values[i]} before {values[i + 1]}.")
 
 
-def check_events(events, q0, p0, t0):
-    """``events`` (an ``Event`` or a list of them) as a tuple, each checked; None stays None."""
+def check_events(events, q0, p0, t0, args=None):
+    """``events`` (an ``Event`` or a list of them) as a tuple, each checked (g called with H's
+    ``args`` where it reads them); None stays None."""
     if events is None:
         return None
     if isinstance(events, Event):
@@ -181,16 +195,16 @@ def check_events(events, q0, p0, t0):
     if not isinstance(events, (list, tuple)) or not events:
         raise TypeError(f"events must be a gj.Event or a non-empty list of them, got {type(events).__name__}.")
     for event in events:
-        check_event(event, q0, p0, t0)
+        check_event(event, q0, p0, t0, args)
     return tuple(events)
 
 
-def check_event(event, q0, p0, t0):
+def check_event(event, q0, p0, t0, args=None):
     if not isinstance(event, Event):
         raise TypeError(f"events must be a gj.Event or a list of them, got {type(event).__name__}.")
     # its fields were checked when it was built (``Event.__post_init__``); here g's output
     try:
-        out = jax.eval_shape(event.g, jnp.asarray(t0, q0.dtype), q0, p0)
+        out = jax.eval_shape(lambda t, q, p: event_value(event.g, t, q, p, args), jnp.asarray(t0, q0.dtype), q0, p0)
     except TypeError as error:
         raise TypeError(f"Event.g could not be called as g(t, q, p): {error}") from error
     shape = getattr(out, "shape", None)

@@ -291,7 +291,7 @@ def sweep(
     Returns:
         ``SweepResult`` with a leading axis B on every field.
     """
-    _span.check_span(n_steps, t0, t1, controller)
+    _span.check_span(n_steps, t0, t1, controller, sweep=True)
     sigma = _span.direction(t0, t1, float)
     if isinstance(sigma, int) and sigma == -1:
         raise ValueError("sweep runs forwards in time (t1 > t0); a run backwards is integrate's (under vmap, "

@@ -450,3 +450,89 @@ def test_the_dense_outputs_direction_compares_as_its_sign():
     assert run(1.0).dense.direction != -1
     both = jax.vmap(run)(jnp.array([-1.0, 1.0])).dense.direction
     assert jnp.array_equal(both == jnp.array([-1.0, 1.0]), jnp.array([True, True]))
+
+
+# the methods and inputs beside cG(3): explicit elements (Stormer-Verlet as GalerkinVI(1) with the
+# trapezoid), a splitting, a composition of Verlet, H closing over a time scale c, a step density of
+# one's own. Each is drawn with the run kinds it supports (a splitting or a composition has no PID
+# run, a splitting no time transformation), against the exact flow of c H, z(c (t - t0)).
+METHODS = {"verlet": gj.GalerkinVI(1, gj.trapezoid()), "splitting": gj.Splitting("blanes_moan4"),
+           "composition": gj.Composition(gj.GalerkinVI(1, gj.trapezoid()), "yoshida4"), "cG3": CG3}
+KINDS = {"verlet": ["fixed", "transform"], "splitting": ["fixed"], "composition": ["fixed", "transform"],
+         "cG3": ["fixed", "pid", "transform"]}
+# each method's step (Verlet's order 2 and the composition's order 4 at smaller h than cG(3)'s order 6)
+# and its runs' largest error on the save grid, measured over the run kinds and densities (oscillator,
+# Kepler e = 0.5): 9.8e-5, 6.7e-3 (Verlet); 1.4e-8, 7.1e-6 (splitting); 1.3e-6, 9.4e-4 (composition);
+# 1.5e-10, 1.1e-6 (cG(3)), with a margin of 3
+STEP = {"verlet": 0.025, "splitting": 0.1, "composition": 0.05, "cG3": 0.1}
+ACCURACY = {("verlet", "oscillator"): 3e-4, ("verlet", "kepler"): 2e-2, ("splitting", "oscillator"): 5e-8,
+            ("splitting", "kepler"): 2e-5, ("composition", "oscillator"): 4e-6, ("composition", "kepler"): 3e-3,
+            ("cG3", "oscillator"): 5e-10, ("cG3", "kepler"): 3e-6}
+
+
+@st.composite
+def method_combinations(draw):
+    method = draw(st.sampled_from(sorted(METHODS)))
+    case = dict(method=method, problem=draw(st.sampled_from(["oscillator", "kepler"])),
+                kind=draw(st.sampled_from(KINDS[method])), backwards=draw(st.booleans()),
+                traced=draw(st.booleans()), closure=draw(st.booleans()), own_density=draw(st.booleans()),
+                saves=draw(st.booleans()), event=draw(st.booleans()), dense=draw(st.booleans()))
+    return case
+
+
+@settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None, phases=(Phase.generate,),
+          suppress_health_check=list(HealthCheck))
+@given(method_combinations())
+def test_harness_methods_closures_and_densities_against_exact_solutions_and_both_modes(case):
+    sign = -1.0 if case["backwards"] else 1.0
+    H, q0, p0 = (OSC, jnp.array([1.0]), jnp.array([0.0])) if case["problem"] == "oscillator" else helpers.kepler(
+        KEPLER_E)
+    level = float(exact(case["problem"], sign * 1.3, 1.0)[0][0])
+    event = gj.Event(lambda t, q, p: q[0] - level, capacity=4) if case["event"] else None
+    offsets = jnp.array([0.55, 1.1, 2.0]) if case["saves"] else None
+    controller = dict(fixed=None, pid=PID, transform=gj.TimeTransform(
+        (lambda q, p: 1.0 / jnp.sqrt(1.0 + q @ q)) if case["own_density"] else None))[case["kind"]]
+
+    def run(x):  # x = (t0, t1, scale of the state, c: the time scale H closes over)
+        t0, t1, scale, c = x[0], x[1], x[2], x[3]
+        fn = (lambda q, p: c * H(q, p)) if case["closure"] else H
+        save_at = None if offsets is None else t0 + sign * offsets
+        return gj.integrate(fn, q0 * scale, p0 * scale, method=METHODS[case["method"]], t0=t0, t1=t1,
+                            h=STEP[case["method"]], controller=controller, save_at=save_at, events=event,
+                            dense=case["dense"], max_steps=None if controller is not None else 160)
+
+    call = jax.jit(run) if case["traced"] else run
+    x = jnp.array([0.3, 0.3 + sign * SPAN, 1.0, 1.0])
+    sol = call(x)
+    assert int(sol.status) == 0, case
+    accuracy = ACCURACY[case["method"], case["problem"]]
+    state = lambda t: np.concatenate(exact(case["problem"], t - 0.3, 1.0))
+    if offsets is not None:
+        for k, off in enumerate(np.asarray(offsets)):
+            np.testing.assert_allclose(np.concatenate([sol.q[k], sol.p[k]]), state(0.3 + sign * off),
+                                       atol=accuracy, err_msg=str(case))
+    else:
+        np.testing.assert_allclose(np.concatenate([sol.q[-1], sol.p[-1]]), state(0.3 + sign * SPAN), atol=accuracy,
+                                   err_msg=str(case))
+    if event is not None:
+        # the crossing's time: the state's error over the speed |dq/dt| there (about 0.5 on both problems)
+        np.testing.assert_allclose(sol.events.t[0], 0.3 + sign * 1.3, atol=4 * accuracy, err_msg=str(case))
+    if case["dense"]:
+        q, p = sol.evaluate(0.3 + sign * 2.2)
+        np.testing.assert_allclose(np.concatenate([q, p]), state(0.3 + sign * 2.2), atol=accuracy, err_msg=str(case))
+
+    def outputs(x):
+        s = call(x)
+        rows = [s.q, s.p] + ([] if s.events is None else [s.events.t])
+        if case["dense"]:
+            rows.append(s.evaluate(x[0] + sign * 2.2)[0])
+        return jnp.concatenate([jnp.ravel(r) for r in rows])
+
+    finite = np.isfinite(np.asarray(outputs(x)))
+    f = lambda x: jnp.where(finite, outputs(x), 0.0)
+    jacobians = jax.jit(lambda x: helpers.jacobians(f, x)) if case["traced"] else (lambda x: helpers.jacobians(f, x))
+    _, forward, reverse = jacobians(x)
+    np.testing.assert_allclose(reverse, forward, rtol=1e-9, atol=1e-9, err_msg=str(case))
+    numerical = jnp.stack([(f(x + 1e-6 * e) - f(x - 1e-6 * e)) / 2e-6 for e in jnp.eye(4)], 1)
+    np.testing.assert_allclose(forward, numerical, rtol=0, atol=1e-5 * max(1.0, float(np.max(np.abs(forward)))),
+                               err_msg=str(case))

@@ -53,12 +53,13 @@ def test_a_closure_in_H_differentiates_as_args_in_both_modes_under_jit_and_vmap(
     k = 2.0
     reference = jax.grad(passed)(k)
     assert float(jax.grad(closed)(k)) == pytest.approx(float(reference), rel=1e-12, abs=1e-14)
-    assert float(jax.jit(jax.grad(closed))(k)) == pytest.approx(float(reference), rel=1e-12, abs=1e-14)
     assert float(jax.jvp(closed, (k,), (1.0,))[1]) == pytest.approx(float(reference), rel=1e-12, abs=1e-14)
     assert abs(float(reference) - float(central(passed, k))) < 1e-7
     ks = jnp.array([1.5, 2.0])
     np.testing.assert_allclose(jax.vmap(closed)(ks), jax.vmap(passed)(ks), rtol=1e-14)
-    np.testing.assert_allclose(jax.vmap(jax.grad(closed))(ks), jax.vmap(jax.grad(passed))(ks), rtol=1e-12)
+    if controller is None:  # a controller's run under jit and vmap: the harness (test_combinations)
+        assert float(jax.jit(jax.grad(closed))(k)) == pytest.approx(float(reference), rel=1e-12, abs=1e-14)
+        np.testing.assert_allclose(jax.vmap(jax.grad(closed))(ks), jax.vmap(jax.grad(passed))(ks), rtol=1e-12)
 
 
 def test_a_closure_in_a_step_density_differentiates_as_args():
@@ -189,17 +190,49 @@ def test_inputs_that_cannot_mean_anything_raise_naming_what_to_do():
     H = lambda q, p: 0.5 * p @ p + 0.5 * q @ q
     with pytest.raises(TypeError, match="returns a boolean.*q\\[0\\] - 1.0"):
         gj.integrate(H, Q0, P0 + 1, method=CG3, h=0.1, t1=3.0, events=gj.Event(lambda t, q, p: q[0] < 0))
-    with pytest.raises(ValueError, match="t1 must be finite.*terminal event"):
+    with pytest.raises(ValueError, match="runs until a terminal event"):
+        gj.integrate(H, Q0, P0, method=CG3, h=0.1, t1=jnp.inf, events=gj.Event(lambda t, q, p: q[0]))
+    with pytest.raises(ValueError, match="need max_steps"):
         gj.integrate(H, Q0, P0, method=CG3, h=0.1, t1=jnp.inf, events=gj.Event(lambda t, q, p: q[0], terminal=True))
     with pytest.raises(ValueError) as error:
         gj.integrate(H, jnp.full(1000, jnp.nan), jnp.zeros(1000), method=CG3, h=0.1, n_steps=3)
     assert "1000 of 1000 entries not finite" in str(error.value) and len(str(error.value)) < 120
-    thr = 0.5
+
+
+@pytest.mark.parametrize("kind", ["fixed", "pid", "backwards"])
+def test_a_closure_in_an_event_differentiates_in_both_modes_under_jit_and_vmap(kind):
+    """The first time q = cos t falls to thr: arccos(thr), d/dthr = -1 / sqrt(1 - thr^2) (backwards:
+    its negative)."""
+    H = lambda q, p: 0.5 * p @ p + 0.5 * q @ q
+    options = dict(fixed=dict(t1=3.0), pid=dict(t1=3.0, controller=gj.PIDController(rtol=1e-9, atol=1e-9)),
+                   backwards=dict(t1=-3.0))[kind]
+    sign = -1.0 if kind == "backwards" else 1.0
 
     def event_time(thr):
-        return gj.integrate(H, Q0, P0, method=CG3, h=0.1, t1=3.0,
-                            events=gj.Event(lambda t, q, p: q[0] - thr)).events.t[0]
+        return gj.integrate(H, Q0, P0, method=CG3, h=0.1, events=gj.Event(lambda t, q, p: q[0] - thr),
+                            **options).events.t[0]
 
-    assert abs(float(event_time(thr)) - np.arccos(thr)) < 1e-9  # its value: q = cos t
-    with pytest.raises(ValueError, match="Event.g closes over a value that is being differentiated"):
-        jax.grad(event_time)(thr)
+    thr = 0.5
+    assert abs(float(event_time(thr)) - sign * np.arccos(thr)) < 1e-9  # the root to the run's accuracy
+    exact = -sign / np.sqrt(1 - thr ** 2)
+    reverse = jax.grad(event_time)(thr)
+    assert abs(float(reverse) - exact) < 1e-8
+    assert float(jax.jit(jax.grad(event_time))(thr)) == pytest.approx(float(reverse), rel=1e-12)
+    assert float(jax.jvp(event_time, (thr,), (1.0,))[1]) == pytest.approx(float(reverse), rel=1e-12)
+    thresholds = jnp.array([0.3, 0.5])
+    np.testing.assert_allclose(jax.vmap(jax.grad(event_time))(thresholds), -sign / np.sqrt(1 - thresholds ** 2),
+                               atol=1e-8)
+
+
+@pytest.mark.parametrize("kind", ["fixed", "pid", "transform", "backwards"])
+def test_an_infinite_t1_runs_until_the_terminal_event(kind):
+    """q = cos t first falls to 1/2 at t = pi / 3 (backwards: -pi / 3)."""
+    options = dict(fixed=dict(max_steps=100), pid=dict(controller=gj.PIDController(rtol=1e-9, atol=1e-9)),
+                   transform=dict(controller=gj.TimeTransform()),
+                   backwards=dict(controller=gj.PIDController(rtol=1e-9, atol=1e-9)))[kind]
+    sign = -1.0 if kind == "backwards" else 1.0
+    sol = gj.integrate(lambda q, p: 0.5 * p @ p + 0.5 * q @ q, Q0, P0, method=CG3, h=0.1, t1=sign * jnp.inf,
+                       events=gj.Event(lambda t, q, p: q[0] - 0.5, terminal=True), **options)
+    assert int(sol.status) == 0 and bool(sol.events.ended)
+    assert abs(float(sol.t[-1]) - sign * np.pi / 3) < 1e-9  # h = 0.1 (in tau), cG(3): the root to ~1e-11
+    assert abs(float(sol.q[-1, 0]) - 0.5) < 1e-9
