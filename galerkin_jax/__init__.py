@@ -16,6 +16,7 @@ from ._controllers import (
 from ._output import DenseOutput as DenseOutput
 from ._composition import Composition as Composition
 from ._splitting import Splitting as Splitting
+from ._tao import Tao as Tao
 from ._structure import Structure as Structure, structure as structure
 from ._galerkin import CG as CG, DG as DG
 from ._method import AbstractMethod as AbstractMethod
@@ -77,6 +78,7 @@ __all__ = [
     "Status",
     "Structure",
     "SweepResult",
+    "Tao",
     "TimeTransform",
     "amplification_matrix",
     "asymmetry",
