@@ -149,6 +149,7 @@ class Tao(AbstractMethod):
     partition_axis = None
     settle = 0
     hamiltonian = True
+    symmetric = False  # to O(h^6), not to round-off: no checkpoint="reversible"
 
     def __post_init__(self):
         _check_stages(self.stages)
