@@ -74,7 +74,7 @@ def extended_map(H, state, h, omega, stages=(1.0,)):
 
     Args:
         state: ``(q, p, x, y)``, each shape ``(d,)``.
-        omega: the binding, a scalar (may be traced).
+        omega: the binding, a number.
         stages: the step fractions gamma_i (a composition's coefficients), static.
     Returns:
         ``(q, p, x, y)`` after the map.
@@ -135,14 +135,14 @@ class Tao(AbstractMethod):
     and events work with them) or a ``TimeTransform``.
 
     Args:
-        omega: the binding, a scalar >= 0 (a leaf: it may be traced, swept and differentiated);
-            default 0.
+        omega: the binding, a number >= 0; default 0. Static (a new omega means a new
+            compilation; ``gj.grid`` runs a list of them as one group each).
         stages: the step fractions of the stages composed on the extended space, symmetric and
             summing to 1; default ``(1.0,)``, Tao's map of order 2. ``Composition`` sets them.
             Static.
     """
 
-    omega: object = 0.0
+    omega: float = dataclasses.field(default=0.0, metadata=dict(static=True))
     stages: tuple = dataclasses.field(default=(1.0,), metadata=dict(static=True))
 
     fixed_point = True  # dR/dZ = I
@@ -152,16 +152,12 @@ class Tao(AbstractMethod):
     symmetric = False  # to O(h^6), not to round-off: no checkpoint="reversible"
 
     def __post_init__(self):
-        _check_stages(self.stages)
-
-    def _check_on_construction(self):
-        if isinstance(self.omega, jax.core.Tracer):
-            return
-        omega = np.asarray(self.omega)
-        if omega.ndim != 0 or not np.issubdtype(omega.dtype, np.number) or np.iscomplexobj(omega):
-            raise TypeError(f"Tao.omega must be a real scalar, got {self.omega!r}.")
+        omega = self.omega
+        if isinstance(omega, bool) or not isinstance(omega, (int, float, np.integer, np.floating)):
+            raise TypeError(f"Tao.omega must be a real number (static), got {omega!r}.")
         if not np.isfinite(omega) or omega < 0:
             raise ValueError(f"Tao.omega must be finite and >= 0, got {float(omega)}.")
+        _check_stages(self.stages)
 
     def composed(self, coefficients):
         """This map composed on the extended space: the stages gamma_i s_j, each of this map's
@@ -171,8 +167,7 @@ class Tao(AbstractMethod):
 
     def extended(self, H, q0, p0, h):
         """``(q, p, x, y)``: the copies at the element's end, from both at (q0, p0)."""
-        omega = jnp.asarray(self.omega, q0.dtype)
-        return extended_map(H, (q0, p0, q0, p0), h, omega, self.stages)
+        return extended_map(H, (q0, p0, q0, p0), h, float(self.omega), self.stages)
 
     def explicit_start(self, H, q0, p0):
         """Nothing passes from element to element (a placeholder scalar)."""
