@@ -113,7 +113,8 @@ class Tao(AbstractMethod):
     Properties: order 2. Not symplectic on (q, p) (the mean of the copies is not), and
     symmetric to high order, not exactly: Phi_{-h} o Phi_h = id + O(h^6) (the copies part by
     O(h^3) and their mean cancels the first terms; measured in ``tests/test_tao.py``), so a
-    long run's energy error drifts slowly where a symplectic method's stays bounded. In
+    long run's energy error drifts slowly where a symplectic method's stays bounded (on the
+    harmonic oscillator the one-step matrix has spectral radius 1 + h^6 / 128). In
     ``Composition(Tao(...), scheme)`` the stages compose on the extended space and the mean is
     read once per element (``composed``): order 4, 6 or 8, symmetric to O(h^{p+6}) at order p
     (order 4: measured 10).

@@ -273,3 +273,24 @@ def test_controllers():
     for method in (gj.Tao(), gj.Composition(gj.Tao())):
         with pytest.raises(ValueError, match="with a PIDController"):
             gj.integrate(tao_h, Q0, P0, method=method, h=0.02, t1=2.0, controller=gj.PIDController(1e-6, 1e-6))
+
+
+def test_weak_instability_on_the_harmonic_oscillator():
+    """Not symplectic, not exactly symmetric: on H = (q^2 + p^2) / 2 the one-step matrix has
+    det A = 1 + h^6 / 64 and spectral radius 1 + h^6 / 128 (measured 1.2206e-4 at h = 0.5, to
+    1e-3 relative); the triple jump's radius less 1 falls as h^10 (measured 9.2e-7 and 7.4e-10
+    at h = 0.5 and 0.25: ratio 2^10.3; margin 0.5 in the exponent). A binding only raises it
+    (omega = 1 / h: 9.1e-4 at h = 0.5)."""
+    H = lambda q, p: 0.5 * (p @ p + q @ q)
+
+    def radius(method, h):
+        A = np.asarray(gj.amplification_matrix(H, jnp.zeros(1), jnp.zeros(1), method=method, h=h))
+        return np.abs(np.linalg.eigvals(A)).max() - 1, np.linalg.det(A) - 1
+
+    r, det = radius(gj.Tao(), 0.5)
+    assert det == pytest.approx(0.5**6 / 64, rel=1e-9)
+    assert r == pytest.approx(0.5**6 / 128, rel=1e-3)
+    assert radius(gj.Tao(omega=1 / 0.5), 0.5)[0] > 5 * r
+    jump = gj.Composition(gj.Tao(), "yoshida4")
+    ratio = radius(jump, 0.5)[0] / radius(jump, 0.25)[0]
+    assert np.log2(ratio) == pytest.approx(10.3, abs=0.5)
