@@ -132,12 +132,12 @@ class Tao(AbstractMethod):
     polynomial is the Hermite cubic through the end states (``_composition.hermite_polynomial``).
     ``local_error`` is the larger of the defect estimate and half the copies' distance at the
     element's end (max-norm): where they part (a step too long for H) the run's estimate
-    says so. A ``PIDController``'s estimate measures the cubic: use fixed steps (``save_at``
-    and events work with them) or a ``TimeTransform``.
+    says so. A ``PIDController`` is refused (its estimate measures the cubic): use fixed steps
+    (``save_at`` and events work with them) or a ``TimeTransform``.
 
     Args:
-        omega: the binding, a number >= 0; default 0. Static (a new omega means a new
-            compilation; ``gj.grid`` runs a list of them as one group each).
+        omega: the binding, a number >= 0; default 0. Static: a new omega means a new
+            compilation, and one sweep takes one omega.
         stages: the step fractions of the stages composed on the extended space, symmetric and
             summing to 1; default ``(1.0,)``, Tao's map of order 2. ``Composition`` sets them.
             Static.
