@@ -140,6 +140,8 @@ def test_every_path_computes_the_same_map():
     1e-13)."""
     method, h = gj.Tao(omega=0.5), 0.02
     H, q0, p0 = double_pendulum, DP_Q0, DP_P0
+    Z = jnp.arange(4.0)
+    assert method.initial_guess(q0, p0, (q0, p0, Z)) is Z and not jnp.any(method.initial_guess(q0, p0))
     nodes = gj.integrate(H, q0, p0, method=method, h=h, n_steps=50, error_estimate=False)
     q, p = q0, p0
     for _ in range(3):
@@ -254,6 +256,8 @@ def test_refusals():
         gj.Tao(float("nan"))
     with pytest.raises(TypeError, match="Tao.omega must be a real number"):
         gj.Tao(jnp.ones(2))
+    with pytest.raises(TypeError, match="Tao.stages must be a tuple"):
+        gj.Tao(stages=[1.0])
     with pytest.raises(ValueError, match="Tao.stages must be symmetric and sum to 1"):
         gj.Tao(stages=(0.5, 0.4))
     with pytest.raises(ValueError, match="symmetric to high order only"):
