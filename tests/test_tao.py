@@ -316,3 +316,11 @@ def test_a_composition_is_one_map_on_the_extended_space():
     assert int(iterated.status) == 0
     np.testing.assert_allclose(iterated.q[-1], closed.q[-1], rtol=0, atol=1e-13)
     assert float(iterated.error_estimate) > 0
+
+
+def test_the_command_line_names_it():
+    """``galerkin-jax run -m tao`` and ``-m yoshida4@tao``: the spec builds the method."""
+    from galerkin_jax import _cli_specs as specs
+
+    assert specs.build(specs.complete(specs.parse_spec("tao"))) == gj.Tao()
+    assert specs.build(specs.complete(specs.parse_spec("yoshida4@tao"))) == gj.Composition(gj.Tao(), "yoshida4")
