@@ -153,8 +153,8 @@ def build_parser():
     run = commands.add_parser("run", help="integrate one scene; write its trajectory, plots and a summary",
                               description="Integrate one scene with one method.", **common)
     run.add_argument("--method", "-m", metavar="METHOD", default="cg",
-                     help="cG, dG, GalerkinVI, ModifiedMidpoint, DiscreteGradient, Tao (LagrangianVI with a scene file "
-                          "defining L), or a spec such as cg3:gauss3 (default cG)")
+                     help="cG, dG, GalerkinVI, ModifiedMidpoint, DiscreteGradient, Tao (LagrangianVI with a scene "
+                          "file defining L), or a spec such as cg3:gauss3 (default cG)")
     run.add_argument("--degree", "-k", type=int, metavar="K", help=f"degree k (default {specs.DEFAULT_DEGREE})")
     run.add_argument("--rule", "-r", metavar="RULE",
                      help="quadrature rule: gauss (Gauss-Legendre, default), lobatto, radau, midpoint, trapezoid")
