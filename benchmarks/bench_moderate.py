@@ -166,7 +166,7 @@ def cg_pid(k):
 def explicit(method, forces, search=False):
     """An explicit element of galerkin_jax (``gj.structure`` finds every separable system
     separable), a composition of Stormer-Verlet or a ``Splitting``, at fixed steps (``fixed``),
-    ``forces`` gradients of V a step. With ``search`` the search's stand-in, compiled once (m
+    ``forces`` gradients of V a step; or Tao's map on any H (``TAO``), ``forces`` gradients of H. With ``search`` the search's stand-in, compiled once (m
     traced): ``gj.step`` in a ``fori_loop``, the same elements (each start's force computed
     again, which the scan hands on: not timed, see ``choose_finals``)."""
     if not search:
@@ -192,6 +192,14 @@ EXPLICIT = [
     ("Composition mclachlan6 of Verlet", gj.Composition(VERLET, "mclachlan6"), 6, 9, 1.0),
     ("Splitting blanes_moan_rkn6", gj.Splitting("blanes_moan_rkn6"), 6, 11, 1.0),
     ("Composition kahan_li8 of Verlet", gj.Composition(VERLET, "kahan_li8"), 8, 15, 1.5),
+]
+# galerkin_jax's explicit candidates on a non-separable H, Tao's map (``gj.Tao``) and its
+# compositions on the extended space: (label, method, order, gradients of H a step, start)
+TAO = [
+    ("Tao", gj.Tao(), 2, 4, 0.125),
+    ("Composition yoshida4 of Tao", gj.Composition(gj.Tao(), "yoshida4"), 4, 10, 0.5),
+    ("Composition kahan_li6 of Tao", gj.Composition(gj.Tao(), "kahan_li6"), 6, 28, 1.0),
+    ("Composition kahan_li8 of Tao", gj.Composition(gj.Tao(), "kahan_li8"), 8, 46, 1.5),
 ]
 DIFFRAX_STAGES = {"Tsit5": 6, "Dopri8": 12}  # new field evaluations per attempt (first same as last)
 
@@ -305,9 +313,12 @@ def solver_list(quick):
     ]
     elements = [Solver(label, True, "steps", order, explicit(method, forces, search=True), start, applies=separable,
                        final=explicit(method, forces)) for label, method, order, forces, start in EXPLICIT]
+    general = lambda system: not separable(system)
+    tao = [Solver(label, True, "steps", order, explicit(method, forces, search=True), start, applies=general,
+                  final=explicit(method, forces)) for label, method, order, forces, start in TAO]
     if quick:
-        return [cg[1], pid[1]] + elements + named_peers
-    return cg + pid + loose + elements + named_peers
+        return [cg[1], pid[1]] + elements + tao + named_peers
+    return cg + pid + loose + elements + tao + named_peers
 
 
 SCALE_STEP = 0.05  # h0 of ``Solver.start``: a step that resolves every system's motion
@@ -589,6 +600,8 @@ def main():
     parser.add_argument("--only", nargs="+", metavar="SYSTEM", help="run only these systems (names as in the table)")
     parser.add_argument("--cap", type=float, default=None, help="the longest predicted run that is run (s; "
                         "default 3, --quick 0.5)")
+    parser.add_argument("--solvers", nargs="+", metavar="TEXT", help="run only the solvers whose names contain one "
+                        "of these (e.g. Tao Dopri8)")
     parser.add_argument("--name", help="output name (default moderate, with _quick and the systems run when not all)")
     options = parser.parse_args()
     available = system_list(options.quick)
@@ -602,8 +615,9 @@ def main():
     results, all_probes = {}, {}
     repeat, budget_s = (1, 0.5) if options.quick else (3, 3.0)
     for system_name in chosen:
-        results[system_name], all_probes[system_name] = run_system(available[system_name](), solver_list(options.quick),
-                                                                   cap_s)
+        chosen_solvers = [solver for solver in solver_list(options.quick)
+                          if not options.solvers or any(text in solver.name for text in options.solvers)]
+        results[system_name], all_probes[system_name] = run_system(available[system_name](), chosen_solvers, cap_s)
         time_cheapest(results[system_name], all_probes[system_name], repeat, budget_s)
     # a second timing pass, minutes after the first: this machine's speed drifts
     for system_name in chosen:

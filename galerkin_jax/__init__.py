@@ -16,6 +16,7 @@ from ._controllers import (
 from ._output import DenseOutput as DenseOutput
 from ._composition import Composition as Composition
 from ._splitting import Splitting as Splitting
+from ._tao import Tao as Tao
 from ._structure import Structure as Structure, structure as structure
 from ._explicit import UndecidedStructureWarning as UndecidedStructureWarning
 from ._galerkin import CG as CG, DG as DG
@@ -78,6 +79,7 @@ __all__ = [
     "Status",
     "Structure",
     "SweepResult",
+    "Tao",
     "TimeTransform",
     "UndecidedStructureWarning",
     "amplification_matrix",

@@ -61,6 +61,7 @@ KINDS = {
                gj.ModifiedMidpoint),
     "dgrad": Kind("DiscreteGradient", "Gonzalez's midpoint discrete gradient (conserves H)", None,
                   gj.DiscreteGradient),
+    "tao": Kind("Tao", "Tao's extended phase space map, explicit for any H [Tao 2016]", None, gj.Tao),
 }
 KIND_ALIASES = {"galerkinvi": "vi", "lagrangianvi": "lvi", "modifiedmidpoint": "mm", "discretegradient": "dgrad"}
 

@@ -37,6 +37,9 @@ HINTS = {
     "dgrad": ("the energy is conserved to round-off", {"round-off"}),
 }
 HINTS["lvi"] = HINTS["vi"]
+HINTS["tao"] = ("Tao's map reads the mean of two copies of phase space: not symplectic, symmetric to high order; "
+               "expect a small energy error that drifts slowly (its compositions: far more slowly)",
+               {"round-off", "bounded", "drift"})
 HINTS["split"] = ("a splitting method is symplectic: the energy error oscillates and does not drift",
                   {"round-off", "bounded"})
 # the symplectic methods, as their hints name them: what a step rule does to that structure

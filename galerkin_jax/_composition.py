@@ -114,6 +114,8 @@ class Composition(AbstractMethod):
     order 2 only). Symmetric, and symplectic where the method is. Where the method has a
     closed form for H (``gj.structure``: Stormer-Verlet on a separable H) every stage is
     computed without iteration, the force carried from stage to stage and step to step.
+    Where the method composes on a space of its own (``Tao``: its ``composed``) the stages
+    compose there and the element reads the state once at its end (``lifted``).
 
     Schemes (``SCHEMES``; the coefficients in the source, cited there):
         "yoshida4": order 4, 3 stages, the triple jump [Yoshida 1990, eq. (5.4)].
@@ -167,6 +169,19 @@ class Composition(AbstractMethod):
         return SCHEMES[self.scheme][1] if isinstance(self.scheme, str) else tuple(float(x) for x in self.scheme)
 
     @property
+    def lifted(self):
+        """Where the method composes on a space of its own (``Tao``: the extended phase space,
+        its ``composed(coefficients)``), that method with this scheme's stages, which every
+        member below hands the element to; else None."""
+        composed = getattr(self.method, "composed", None)
+        return None if composed is None else composed(self.coefficients)
+
+    def composed(self, coefficients):
+        """Where the method composes on a space of its own (``lifted``): this composition
+        composed again with ``coefficients`` (a composition of a composition); else None."""
+        return None if self.lifted is None else self.lifted.composed(coefficients)
+
+    @property
     def fixed_point(self):
         return self.method.fixed_point  # dR/dZ at h = 0 is block diagonal, of the method's blocks
 
@@ -181,6 +196,8 @@ class Composition(AbstractMethod):
     def initial_guess(self, q0, p0, previous=None, ratio=None):
         """The previous element's stage unknowns (they change by O(h^2) from element to
         element), or the method's constant guess for every stage."""
+        if self.lifted is not None:
+            return self.lifted.initial_guess(q0, p0, previous, ratio)
         if previous is not None and ratio is None:
             return previous[2]
         return jnp.concatenate([self.method.initial_guess(q0, p0)] * len(self.coefficients))
@@ -190,6 +207,8 @@ class Composition(AbstractMethod):
 
     def residual(self, H, q0, p0, Z, h):
         """Each stage's equations at the state the stages before it end at."""
+        if self.lifted is not None:
+            return self.lifted.residual(H, q0, p0, Z, h)
         q, p, out = q0, p0, []
         for gamma, Z_i in zip(self.coefficients, self._stages(Z)):
             out.append(self.method.residual(H, q, p, Z_i, gamma * h))
@@ -198,6 +217,8 @@ class Composition(AbstractMethod):
         return jnp.concatenate(out)
 
     def increment(self, H, q0, p0, Z, h):
+        if self.lifted is not None:
+            return self.lifted.increment(H, q0, p0, Z, h)
         q, p = q0, p0
         for gamma, Z_i in zip(self.coefficients, self._stages(Z)):
             dq, dp = self.method.increment(H, q, p, Z_i, gamma * h)
@@ -206,12 +227,16 @@ class Composition(AbstractMethod):
 
     def polynomial(self, H, q0, p0, Z, h):
         """The Hermite cubic through the end states (``hermite_polynomial``)."""
+        if self.lifted is not None:
+            return self.lifted.polynomial(H, q0, p0, Z, h)
         return hermite_polynomial(H, q0, p0, *self.increment(H, q0, p0, Z, h), h)
 
     @property
     def explicit(self):
         """Where the method is explicit (``_explicit``): ``(H, q0, p0, h, g0) -> (Z, (dq, dp), g1)``,
         its stages in closed form one after another, the force carried; else None."""
+        if self.lifted is not None:
+            return self.lifted.explicit
         if not callable(getattr(self.method, "explicit", None)):
             return None
 
@@ -225,14 +250,26 @@ class Composition(AbstractMethod):
 
         return explicit
 
+    def local_error(self, H, q0, p0, Z, h):
+        if self.lifted is not None:
+            return self.lifted.local_error(H, q0, p0, Z, h)
+        return super().local_error(H, q0, p0, Z, h)
+
     def explicit_start(self, H, q0, p0):
+        if self.lifted is not None:
+            return self.lifted.explicit_start(H, q0, p0)
         return self.method.explicit_start(H, q0, p0)
 
     def explicit_field(self, H, q1, p1, memo):
+        if self.lifted is not None:
+            return self.lifted.explicit_field(H, q1, p1, memo)
         return self.method.explicit_field(H, q1, p1, memo)
 
     def explicit_form(self, structure):
-        """The composition of the method's explicit form for H's structure, or None."""
+        """The composition of the method's explicit form for H's structure, or None (``lifted``:
+        the method composed on its own space)."""
+        if self.lifted is not None:
+            return self.lifted
         form = getattr(self.method, "explicit_form", None)
         inner = None if form is None else form(structure)
         return None if inner is None else Composition(inner, self.scheme)

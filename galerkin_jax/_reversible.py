@@ -26,6 +26,7 @@ import numpy as np
 
 from ._composition import _is_symmetric_rule
 from ._march import compensated_add, march, solve_element, time_reversed
+from ._method import layers
 from ._quadrature import QuadratureRule
 from ._solve import Status
 
@@ -52,6 +53,10 @@ def check_reversible(method, *, controller=None, save_at=None, events=None, dens
             raise ValueError(f"{what} is for fixed-step runs of n_steps (or to a concrete t1); not with {name}. "
                              "Use checkpoint=True there.")
     name = type(method).__name__
+    inexact = [type(m).__name__ for m in layers(method) if getattr(m, "symmetric", True) is False]
+    if inexact:
+        raise ValueError(f"{what} needs a method whose step with -h undoes its step with h to round-off; "
+                         f"{inexact[-1]} is symmetric to high order only: use checkpoint=True.")
     if name == "DG":
         raise ValueError(f"{what} needs a symmetric method; DG(k) is not (its upwind flux): use CG(k, "
                          "gauss_legendre(k)), GalerkinVI(s, rule) with a symmetric rule, or checkpoint=True.")

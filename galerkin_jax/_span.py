@@ -101,6 +101,9 @@ def check_controller(controller, method, batch=None):
             controller, PIDController) else "the time-transformed K = s(q, p) (H + p_t) is not separable")
         raise ValueError(f"Splitting with a {type(controller).__name__}: {why}; use fixed steps (save_at and "
                          "events work with them).")
+    if isinstance(controller, PIDController) and any(type(m).__name__ == "Tao" for m in layers(method)):
+        raise ValueError("Tao with a PIDController: its error estimate measures the interpolating cubic, not Tao's "
+                         "map; use fixed steps (save_at and events work with them) or a TimeTransform.")
     if type(method).__name__ == "Composition" and not isinstance(controller, TimeTransform):
         raise ValueError(
             "Composition with a PIDController: the error estimate measures the composition's "

@@ -47,7 +47,8 @@ verlet is vi1:trapezoid (Stormer-Verlet). SCHEME@METHOD composes a symmetric met
 (SCHEME: yoshida4, suzuki4, mclachlan4, yoshida6, kahan_li6, mclachlan6, kahan_li8,
 kahan_li8_s17, mclachlan8), e.g. kahan_li6@verlet, yoshida4@cg1:gauss1; split:SCHEME is a
 splitting for separable H (leapfrog, blanes_moan4, blanes_moan6, blanes_moan_rkn4,
-blanes_moan_rkn6), e.g. split:blanes_moan_rkn6. See docs/which-method.md.
+blanes_moan_rkn6), e.g. split:blanes_moan_rkn6; tao is Tao's explicit map for any H (e.g.
+yoshida4@tao: order 4). See docs/which-method.md.
 
 exit status: 0 success, 1 bad input, 2 bad option, 3 an implicit solve failed.
 """
@@ -152,8 +153,8 @@ def build_parser():
     run = commands.add_parser("run", help="integrate one scene; write its trajectory, plots and a summary",
                               description="Integrate one scene with one method.", **common)
     run.add_argument("--method", "-m", metavar="METHOD", default="cg",
-                     help="cG, dG, GalerkinVI, ModifiedMidpoint, DiscreteGradient (LagrangianVI with a scene file "
-                          "defining L), or a spec such as cg3:gauss3 (default cG)")
+                     help="cG, dG, GalerkinVI, ModifiedMidpoint, DiscreteGradient, Tao (LagrangianVI with a scene "
+                          "file defining L), or a spec such as cg3:gauss3 (default cG)")
     run.add_argument("--degree", "-k", type=int, metavar="K", help=f"degree k (default {specs.DEFAULT_DEGREE})")
     run.add_argument("--rule", "-r", metavar="RULE",
                      help="quadrature rule: gauss (Gauss-Legendre, default), lobatto, radau, midpoint, trapezoid")
