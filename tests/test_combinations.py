@@ -453,21 +453,22 @@ def test_the_dense_outputs_direction_compares_as_its_sign():
 
 
 # the methods and inputs beside cG(3): explicit elements (Stormer-Verlet as GalerkinVI(1) with the
-# trapezoid), a splitting, a composition of Verlet, H closing over a time scale c, a step density of
-# one's own. Each is drawn with the run kinds it supports (a splitting or a composition has no PID
+# trapezoid), a splitting, a composition of Verlet, Tao's map, H closing over a time scale c, a step
+# density of one's own, the reversible gradient. Each is drawn with the run kinds it supports (a splitting or a composition has no PID
 # run, a splitting no time transformation), against the exact flow of c H, z(c (t - t0)).
 METHODS = {"verlet": gj.GalerkinVI(1, gj.trapezoid()), "splitting": gj.Splitting("blanes_moan4"),
-           "composition": gj.Composition(gj.GalerkinVI(1, gj.trapezoid()), "yoshida4"), "cG3": CG3}
+           "composition": gj.Composition(gj.GalerkinVI(1, gj.trapezoid()), "yoshida4"), "cG3": CG3, "tao": gj.Tao()}
 KINDS = {"verlet": ["fixed", "transform"], "splitting": ["fixed"], "composition": ["fixed", "transform"],
-         "cG3": ["fixed", "pid", "transform"]}
+         "cG3": ["fixed", "pid", "transform"], "tao": ["fixed", "transform"]}
 # each method's step (Verlet's order 2 and the composition's order 4 at smaller h than cG(3)'s order 6)
 # and its runs' largest error on the save grid, measured over the run kinds and densities (oscillator,
 # Kepler e = 0.5): 9.8e-5, 6.7e-3 (Verlet); 1.4e-8, 7.1e-6 (splitting); 1.3e-6, 9.4e-4 (composition);
-# 1.5e-10, 1.1e-6 (cG(3)), with a margin of 3
-STEP = {"verlet": 0.025, "splitting": 0.1, "composition": 0.05, "cG3": 0.1}
+# 1.5e-10, 1.1e-6 (cG(3)); 7.9e-5, 4.9e-3 (Tao), with a margin of 3
+STEP = {"verlet": 0.025, "splitting": 0.1, "composition": 0.05, "cG3": 0.1, "tao": 0.025}
 ACCURACY = {("verlet", "oscillator"): 3e-4, ("verlet", "kepler"): 2e-2, ("splitting", "oscillator"): 5e-8,
             ("splitting", "kepler"): 2e-5, ("composition", "oscillator"): 4e-6, ("composition", "kepler"): 3e-3,
-            ("cG3", "oscillator"): 5e-10, ("cG3", "kepler"): 3e-6}
+            ("cG3", "oscillator"): 5e-10, ("cG3", "kepler"): 3e-6, ("tao", "oscillator"): 3e-4,
+            ("tao", "kepler"): 2e-2}
 
 
 @st.composite
@@ -476,7 +477,12 @@ def method_combinations(draw):
     case = dict(method=method, problem=draw(st.sampled_from(["oscillator", "kepler"])),
                 kind=draw(st.sampled_from(KINDS[method])), backwards=draw(st.booleans()),
                 traced=draw(st.booleans()), closure=draw(st.booleans()), own_density=draw(st.booleans()),
-                saves=draw(st.booleans()), event=draw(st.booleans()), dense=draw(st.booleans()))
+                saves=draw(st.booleans()), event=draw(st.booleans()), dense=draw(st.booleans()),
+                reversible=draw(st.booleans()))
+    # the reversible gradient rebuilds fixed steps to a concrete end: no saves, events or dense output
+    # (Tao's map is symmetric to O(h^6) only: refused there)
+    case["reversible"] &= case["kind"] == "fixed" and not (case["saves"] or case["event"] or case["dense"])
+    case["reversible"] &= method != "tao"
     return case
 
 
@@ -495,11 +501,14 @@ def test_harness_methods_closures_and_densities_against_exact_solutions_and_both
 
     def run(x):  # x = (t0, t1, scale of the state, c: the time scale H closes over)
         t0, t1, scale, c = x[0], x[1], x[2], x[3]
+        if case["reversible"]:  # its span concrete: derivatives in the scale and c
+            t0, t1 = 0.3, 0.3 + sign * SPAN
         fn = (lambda q, p: c * H(q, p)) if case["closure"] else H
         save_at = None if offsets is None else t0 + sign * offsets
         return gj.integrate(fn, q0 * scale, p0 * scale, method=METHODS[case["method"]], t0=t0, t1=t1,
                             h=STEP[case["method"]], controller=controller, save_at=save_at, events=event,
-                            dense=case["dense"], max_steps=None if controller is not None else 160)
+                            dense=case["dense"], checkpoint="reversible" if case["reversible"] else False,
+                            max_steps=None if controller is not None or case["reversible"] else 160)
 
     call = jax.jit(run) if case["traced"] else run
     x = jnp.array([0.3, 0.3 + sign * SPAN, 1.0, 1.0])
@@ -534,5 +543,7 @@ def test_harness_methods_closures_and_densities_against_exact_solutions_and_both
     _, forward, reverse = jacobians(x)
     np.testing.assert_allclose(reverse, forward, rtol=1e-9, atol=1e-9, err_msg=str(case))
     numerical = jnp.stack([(f(x + 1e-6 * e) - f(x - 1e-6 * e)) / 2e-6 for e in jnp.eye(4)], 1)
+    if case["reversible"]:
+        assert not np.any(np.asarray(forward[:, :2])), case  # t0, t1 are constants of that run
     np.testing.assert_allclose(forward, numerical, rtol=0, atol=1e-5 * max(1.0, float(np.max(np.abs(forward)))),
                                err_msg=str(case))
