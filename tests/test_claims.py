@@ -114,14 +114,14 @@ def test_cg_has_order_2k_conserves_energy_with_2k_gauss_points_and_is_gauss_coll
 
     Order 2k at the nodes with both: measured 1.997, 3.987, 5.987 (2k points) and 1.997, 3.989,
     5.984 (k points); the margin 0.1 separates 2k from 2k +- 1. Theorem 3.1: with 2k points
-    every integral of the DH terms is exact (the test function, degree k - 1, times DH(w) . w',
-    degree 3k, is of degree 4k - 1, which 2k Gauss points integrate exactly), so H is kept to
+    every integral of the DH terms is exact (the test function, of degree k - 1, times DH(w),
+    cubic in w of degree k, is of degree 4k - 1, which 2k Gauss points integrate), so H is kept to
     round-off at every step size: measured at most 1.0e-15 over 128 steps; bound 1e-14, where a
     drift of one eps per step would reach 1.4e-14 after 64 steps. With k points it is not kept
     (a rule exact to degree 2k - 1; for k = 1, the midpoint rule on a quartic V, Table 5.1's C*
     box, where only the modified midpoint rule conserves): measured 9.3e-5 .. 1.6e-11 at the smallest
     h, bound 1e-12, a thousand times round-off. With k points cG(k) is k-stage Gauss collocation
-    [GBS, Section 3.2]: its first 8 steps equal those of the collocation method written out in
+    (the classical equivalence; cG(k) is [GBS, Section 3.1]): its first 8 steps equal those of the collocation method written out in
     NumPy (measured 4.4e-16; bound 1e-12, SciPy solving each stage system to 1e-15)."""
     ns = NS[k]
     sol, errors = runs([gj.CG(k, gj.gauss_legendre(2 * k)), gj.CG(k, gj.gauss_legendre(k))], ns)
