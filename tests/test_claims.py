@@ -13,8 +13,8 @@ The scene: two uncoupled quartic oscillators, H = sum_i p_i^2 / (2 m_i) + q_i^4 
 exact solution is q_i = A_i cn(w_i (t + t_i) | 1/2), w_i = A_i / sqrt(m_i) (Jacobi's elliptic
 functions, SciPy). H is a polynomial of degree four, nonlinear, separable with a kinetic
 energy quadratic in p (every method applies to it but the modified midpoint rule, for central
-forces: Kepler below) and with a Lagrangian
-L = sum_i m_i qdot_i^2 / 2 - q_i^4 / 4 of [Tang]'s form (M = diag(m), not the identity).
+forces: Kepler below), with a Lagrangian L = sum_i m_i qdot_i^2 / 2 - q_i^4 / 4 of [Tang]'s
+form (M = diag(m), not the identity).
 """
 
 import jax
@@ -99,7 +99,8 @@ def collocation(nodes, h, n_steps):
     return np.stack(states)
 
 
-def states(sol, member, n_steps):
+def nodal_states(sol, member, n_steps):
+    """(q, p) of one member of a batched run at its first n_steps + 1 nodes, as rows."""
     return np.concatenate([np.asarray(sol.q[member, : n_steps + 1]), np.asarray(sol.p[member, : n_steps + 1])], axis=1)
 
 
@@ -115,14 +116,15 @@ def test_cg_has_order_2k_conserves_energy_with_2k_gauss_points_and_is_gauss_coll
     Order 2k at the nodes with both: measured 1.997, 3.987, 5.987 (2k points) and 1.997, 3.989,
     5.984 (k points); the margin 0.1 separates 2k from 2k +- 1. Theorem 3.1: with 2k points
     every integral of the DH terms is exact (the test function, of degree k - 1, times DH(w),
-    cubic in w of degree k, is of degree 4k - 1, which 2k Gauss points integrate), so H is kept to
-    round-off at every step size: measured at most 1.0e-15 over 128 steps; bound 1e-14, where a
-    drift of one eps per step would reach 1.4e-14 after 64 steps. With k points it is not kept
-    (a rule exact to degree 2k - 1; for k = 1, the midpoint rule on a quartic V, Table 5.1's C*
-    box, where only the modified midpoint rule conserves): measured 9.3e-5 .. 1.6e-11 at the smallest
-    h, bound 1e-12, a thousand times round-off. With k points cG(k) is k-stage Gauss collocation
-    (the classical equivalence; cG(k) is [GBS, Section 3.1]): its first 8 steps equal those of the collocation method written out in
-    NumPy (measured 4.4e-16; bound 1e-12, SciPy solving each stage system to 1e-15)."""
+    cubic in w of degree k, is of degree 4k - 1, which 2k Gauss points integrate), so H is kept
+    to round-off at every step size: measured at most 1.0e-15 over 128 steps; bound 1e-14,
+    where a drift of one eps per step would reach 1.4e-14 after 64 steps. With k points it is
+    not kept (a rule exact to degree 2k - 1; for k = 1 the midpoint rule on a quartic V, Table
+    5.1's C* box, which only the modified midpoint rule conserves): measured 9.3e-5 .. 1.6e-11
+    at the smallest h; bound 1e-12, a thousand times round-off. With k points cG(k) is k-stage
+    Gauss collocation (the classical equivalence; cG(k): [GBS, Section 3.1]): its first 8 steps
+    equal those of the collocation method written out in NumPy (measured 4.4e-16; bound 1e-12,
+    SciPy solving each stage system to 1e-15)."""
     ns = NS[k]
     sol, errors = runs([gj.CG(k, gj.gauss_legendre(2 * k)), gj.CG(k, gj.gauss_legendre(k))], ns)
     for e in errors:
@@ -131,7 +133,7 @@ def test_cg_has_order_2k_conserves_energy_with_2k_gauss_points_and_is_gauss_coll
     assert exact_rule.max() < 1e-14
     assert gauss_points.min() > 1e-12
     gauss = collocation(np.asarray(gj.gauss_legendre(k).points), T / ns[0], 8)
-    np.testing.assert_allclose(states(sol, len(ns), 8), gauss, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(nodal_states(sol, len(ns), 8), gauss, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("k", [1, 2, 3])
@@ -146,7 +148,7 @@ def test_dg_has_order_2k_plus_1_and_with_k_plus_1_radau_points_is_radau_iia(k):
     for e in errors:
         assert order(ns, e) == pytest.approx(2 * k + 1, abs=0.1)
     radau = collocation(np.asarray(gj.gauss_radau(k + 1).points), T / ns[0], 8)
-    np.testing.assert_allclose(states(sol, len(ns), 8), radau, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(nodal_states(sol, len(ns), 8), radau, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("s", [1, 2, 3])
