@@ -190,8 +190,8 @@ VERLET = gj.GalerkinVI(1, gj.trapezoid())
 
 def test_symplecticity():
     """max |A^T J A - J| of the step's Jacobian A (jacfwd through the solve) at h = 0.3: round-off
-    for Gauss collocation (cG(2) with 2 Gauss points), for LagrangianVI(2) [Tang, Theorem 2.2],
-    for Stormer-Verlet, a splitting and a composition (measured at most 4.4e-16; bound 1e-13);
+    for Gauss collocation (cG(2) with 2 Gauss points), for LagrangianVI(2) (the map of a discrete
+    Lagrangian, [Tang, Section 2.1.1, eq. (2.5)]), for Stormer-Verlet, a splitting and a composition (measured at most 4.4e-16; bound 1e-13);
     not for cG(2) with 4 Gauss points, which conserves H instead (Theorem 3.1; measured 3.5e-5,
     bound 1e-6). GalerkinVI's and dG(1)'s: test_reproduce.py (``tang_symplecticity``)."""
     defect = lambda method, f=H: helpers.symplecticity_defect(gj.amplification_matrix(f, Q0, P0, method=method, h=0.3))
@@ -206,8 +206,9 @@ def test_symplecticity():
 
 
 # (method, order, step counts, margin). Measured: 2.002; 4.005, 6.063, 4.005, 5.937; 3.978, 5.974,
-# 8.231. kahan_li8's slope falls to 8 from above as h falls (8.7, 8.4, 8.2 between halvings from
-# T / 4) and meets round-off first: its margin 0.35 still tells 8 from 7 and 9.
+# 8.231. kahan_li8's slope falls to 8 from above as h falls (8.7 from T / 8 to T / 16, 8.4 from
+# T / 12 to T / 24, 8.1 from T / 24 to T / 48) and meets round-off first: its margin 0.35 still
+# tells 8 from 7 and 9.
 EXPLICIT = {
     "Verlet": (VERLET, 2, (32, 64, 128), 0.15),
     "blanes_moan4": (gj.Splitting("blanes_moan4"), 4, (16, 32, 64), 0.15),
