@@ -12,11 +12,11 @@ is written to ``tests/slow.txt``, which ``tests/conftest.py`` reads.
 
 The claims stay in the default tier whatever their coverage: the tests whose node ids begin
 with an entry of ``CLAIMS`` (tests/test_claims.py, the docs' claims in fast form: the orders of
-convergence, Theorem 3.1 of [GBS], the equivalences, symplecticity, the explicit paths;
-test_conservation.py's dissipation of dG(k), [GBS] Props. 3.1 and 4.3; test_midpoint.py's
-discrete gradient over 10^4 steps, whose run a test of the default tier shares). They enter
-the set cover as chosen (what they cover needs no other test) and are never written to
-slow.txt; tests/test_tiers.py checks that none is listed there and that each entry names a test.
+convergence, Theorem 3.1 and the dissipation of dG(k) of [GBS], the equivalences,
+symplecticity, the explicit paths; test_midpoint.py's discrete gradient over 10^4 steps, whose
+run a test of the default tier shares). They enter the set cover as chosen (what they cover
+needs no other test) and are never written to slow.txt; tests/test_tiers.py checks that none
+is listed there and that each entry names a test.
 
 Made anew after tests are added or moved (about half an hour on the two-core machine):
 
@@ -35,8 +35,6 @@ import sqlite3
 # Node-id prefixes of the tests kept in the default tier whatever their coverage (the docstring).
 CLAIMS = (
     "tests/test_claims.py::",
-    "tests/test_conservation.py::test_dg_energy_of_a_quadratic_hamiltonian_strictly_decays[",
-    "tests/test_conservation.py::test_dg0_energy_decays_for_a_convex_non_quadratic_hamiltonian",
     "tests/test_midpoint.py::test_discrete_gradient_conserves_energy_over_1e4_steps",
 )
 DURATION = re.compile(r"^\s*([\d.]+)s (?:setup|call|teardown)\s+(\S.*?)\s*$")

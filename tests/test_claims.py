@@ -1,8 +1,8 @@
 """The claims of the README and of docs/methods.md, each in a fast form for the default tier.
 
-Orders of convergence, Theorem 3.1's conservation, the equivalences with classical
-Runge-Kutta schemes, symplecticity and the explicit paths, measured on small systems with few
-step sizes. Each test compiles one program per method kind and degree: a ``vmap`` over step
+Orders of convergence, Theorem 3.1's conservation and dG's dissipation, the equivalences with
+classical Runge-Kutta schemes, symplecticity and the explicit paths, measured on small systems
+with few step sizes. Each test compiles one program per method kind and degree: a ``vmap`` over step
 sizes and over rules stacked by ``gj.stack_methods`` shares it. The thorough versions, on
 Kepler and over long runs, are in test_convergence.py, test_conservation.py,
 test_equivalences.py, test_variational.py, test_explicit.py, test_splitting.py and
@@ -106,7 +106,7 @@ def nodal_states(sol, member, n_steps):
 
 # step counts per degree: every error in the asymptotic range and above 1e-13 (largest error
 # 1.5e-3 .. 4e-8, smallest 1.3e-4 .. 1.6e-12)
-NS = {1: (32, 64, 128), 2: (16, 32, 64), 3: (16, 32, 64)}
+NS = {0: (256, 512, 1024), 1: (32, 64, 128), 2: (16, 32, 64), 3: (16, 32, 64)}
 
 
 @pytest.mark.parametrize("k", [1, 2, 3])
@@ -136,19 +136,47 @@ def test_cg_has_order_2k_conserves_energy_with_2k_gauss_points_and_is_gauss_coll
     np.testing.assert_allclose(nodal_states(sol, len(ns), 8), gauss, rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("k", [1, 2, 3])
-def test_dg_has_order_2k_plus_1_and_with_k_plus_1_radau_points_is_radau_iia(k):
-    """dG(k) [GBS, eq. (19)]: order 2k + 1 at the nodes with k + 2 Gauss points and with k + 1
-    right Radau points (measured 2.996, 4.984, 6.986 and 2.995, 4.982, 6.984; margin 0.1). With
-    the Radau points it is the (k + 1)-stage Radau IIA method (Lesaint-Raviart): its first 8
-    steps equal those of the collocation method on the Radau points in NumPy (measured 8.9e-16 ..
-    1.5e-14; bound 1e-12, SciPy solving each stage system to 1e-15)."""
+def H_or_hooke(q, p, hooke):
+    """H (hooke = 0) or, with U = |q|^2 / 2 for sum_i q_i^4 / 4, a quadratic H (hooke = 1): one
+    program for both."""
+    return 0.5 * p @ (p / MASS) + (1 - hooke) * 0.25 * jnp.sum(q**4) + hooke * 0.5 * (q @ q)
+
+
+@pytest.mark.parametrize("k", [0, 1, 2, 3])
+def test_dg_has_order_2k_plus_1_dissipates_and_with_k_plus_1_radau_points_is_radau_iia(k):
+    """dG(k) [GBS, eq. (19)], one program for two rules, three step sizes and two Hamiltonians.
+
+    Order 2k + 1 at the nodes on H with k + 2 Gauss points and with k + 1 right Radau points
+    (measured 0.986, 2.996, 4.984, 6.986 and 0.986, 2.995, 4.982, 6.984; margin 0.1). With the
+    Radau points it is the (k + 1)-stage Radau IIA method (Lesaint-Raviart; k = 0: implicit
+    Euler): its first 8 steps equal those of the collocation method on the Radau points in
+    NumPy (measured 4.4e-16 .. 1.5e-14; bound 1e-12, SciPy solving each stage system to 1e-15).
+    Both rules are exact for a quadratic H, whose energy then decreases at every step (Prop. 3.1
+    (ii), Prop. 4.3): at the largest h, by at least 1.3e-4, 3.0e-6, 2.4e-8, 6.5e-12 of H a step
+    for k = 0..3, each far above round-off (~1e-16); dG(0) decreases the convex, non-quadratic
+    H too (Prop. 3.1 (i); at least 4.0e-5). The thorough versions, 50 steps of h omega = 0.35:
+    test_conservation.py."""
     ns = NS[k]
-    sol, errors = runs([gj.DG(k, gj.gauss_legendre(k + 2)), gj.DG(k, gj.gauss_radau(k + 1))], ns)
-    for e in errors:
-        assert order(ns, e) == pytest.approx(2 * k + 1, abs=0.1)
+    methods = [gj.DG(k, gj.gauss_legendre(k + 2)), gj.DG(k, gj.gauss_radau(k + 1))]
+    rows = [(m, n, hooke) for m in methods for hooke in (0.0, 1.0) for n in ns]
+    sol = jax.vmap(lambda m, h, hooke: gj.integrate(H_or_hooke, Q0, P0, method=m, h=h, n_steps=max(ns), args=hooke,
+                                                    error_estimate=False))(
+        gj.stack_methods([r[0] for r in rows]), jnp.asarray([T / r[1] for r in rows]), jnp.asarray([r[2] for r in rows]))
+    assert np.all(np.asarray(sol.status) == 0)
+    q, p = np.asarray(sol.q), np.asarray(sol.p)
+    hooke = np.asarray([r[2] for r in rows]) == 1.0
+    qe, pe = exact(T)
+    for i in (0, 2 * len(ns)):  # the rows of H, each rule's
+        errors = [max(np.abs(q[i + j, n] - qe).max(), np.abs(p[i + j, n] - pe).max()) for j, n in enumerate(ns)]
+        assert order(ns, errors) == pytest.approx(2 * k + 1, abs=0.1)
+    energy = np.asarray(jax.vmap(jax.vmap(H_or_hooke, in_axes=(0, 0, None)))(sol.q, sol.p, jnp.asarray(hooke, float)))
+    largest = np.asarray([r[1] for r in rows]) == ns[0]  # at smaller h, dG(3)'s decrement nears round-off
+    decrement = -np.diff(energy[largest], axis=1) / energy[largest, :1]
+    assert decrement[hooke[largest]].min() > 0
+    if k == 0:
+        assert decrement[~hooke[largest]].min() > 0
     radau = collocation(np.asarray(gj.gauss_radau(k + 1).points), T / ns[0], 8)
-    np.testing.assert_allclose(nodal_states(sol, len(ns), 8), radau, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(nodal_states(sol, 2 * len(ns), 8), radau, rtol=0, atol=1e-12)
 
 
 def test_galerkin_vi_has_order_2s_and_lagrangian_vi_equals_it():

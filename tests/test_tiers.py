@@ -48,7 +48,7 @@ def test_the_claims_stay_in_the_default_tier():
     assert all(any(n.startswith(prefix) for n in everything) for prefix in tiers.CLAIMS)
     claims = {n for n in everything if tiers.is_claim(n)}
     assert {n for n in everything if n.startswith("tests/test_claims.py::")} < claims
-    assert len(claims) >= 25  # 19 in test_claims.py, 5 in test_conservation.py, 1 in test_midpoint.py
+    assert len(claims) >= 21  # 20 in test_claims.py, 1 in test_midpoint.py
 
 
 def test_a_test_named_on_the_command_line_runs_whatever_its_tier():
