@@ -10,6 +10,14 @@ still uncovered, then each chosen test replaced where cheaper ones cover what it
 costs nothing and keeps its check where a developer runs first. The rest, one node id a line,
 is written to ``tests/slow.txt``, which ``tests/conftest.py`` reads.
 
+The claims stay in the default tier whatever their coverage: the tests whose node ids begin
+with an entry of ``CLAIMS`` (tests/test_claims.py, the docs' claims in fast form: the orders of
+convergence, Theorem 3.1 and the dissipation of dG(k) of [GBS], the equivalences,
+symplecticity, the explicit paths; test_midpoint.py's discrete gradient over 10^4 steps, whose
+run a test of the default tier shares). They enter the set cover as chosen (what they cover
+needs no other test) and are never written to slow.txt; tests/test_tiers.py checks that none
+is listed there and that each entry names a test.
+
 Made anew after tests are added or moved (about half an hour on the two-core machine):
 
     python -m pytest -q --tier=all --cov --cov-context=test --cov-report= --durations=0 | tee durations.txt
@@ -24,6 +32,11 @@ import collections
 import re
 import sqlite3
 
+# Node-id prefixes of the tests kept in the default tier whatever their coverage (the docstring).
+CLAIMS = (
+    "tests/test_claims.py::",
+    "tests/test_midpoint.py::test_discrete_gradient_conserves_energy_over_1e4_steps",
+)
 DURATION = re.compile(r"^\s*([\d.]+)s (?:setup|call|teardown)\s+(\S.*?)\s*$")
 
 
@@ -61,19 +74,25 @@ def cheapest_cover(arcs, pool, cover, cost):
     return chosen
 
 
-def default_tier(cover, base, cost):
-    """A set of tests that covers every arc of ``cover`` beyond ``base``, of few seconds."""
+def is_claim(node):
+    """Whether a node id names a test that ``CLAIMS`` keeps in the default tier."""
+    return node.startswith(CLAIMS)
+
+
+def default_tier(cover, base, cost, kept=frozenset()):
+    """A set of tests that covers every arc of ``cover`` beyond ``base``, of few seconds, with
+    the tests ``kept`` (chosen beforehand, never swapped out)."""
     owners = collections.defaultdict(list)
     for node, arcs in cover.items():
         for arc in arcs - base:
             owners[arc].append(node)
-    chosen = {nodes[0] for nodes in owners.values() if len(nodes) == 1}
+    chosen = {nodes[0] for nodes in owners.values() if len(nodes) == 1} | set(kept)
     covered = set().union(base, *(cover[n] for n in chosen))
     chosen |= set(cheapest_cover(set(owners) - covered, [n for n in cover if n not in chosen], cover, cost))
     improved = True
     while improved:  # swap a test for cheaper ones that cover what it alone covers
         improved = False
-        for node in sorted(chosen, key=lambda n: -cost[n]):
+        for node in sorted(chosen - set(kept), key=lambda n: -cost[n]):
             alone = cover[node] - set().union(base, *(cover[n] for n in chosen if n != node))
             others = cheapest_cover(alone, [n for n in cover if n not in chosen], cover, cost)
             if others is not None and sum(cost[n] for n in others) < cost[node]:
@@ -92,7 +111,8 @@ def main():
     cover, base = arcs_by_test(options.coverage)
     seconds = durations(options.durations)
     cost = {n: seconds[n] for n in set(cover) | set(seconds)}  # 0 s for a test pytest did not time
-    fast = default_tier(cover, base, cost) | {n for n in cost if cost[n] < options.cheap}
+    claims = {n for n in cost if is_claim(n)}
+    fast = default_tier(cover, base, cost, claims) | claims | {n for n in cost if cost[n] < options.cheap}
     slow = sorted(set(cost) - fast)
     total = sum(cost.values())
     print(f"# The slow tier (python -m pytest --tier=slow): {len(slow)} tests, {sum(cost[n] for n in slow):.0f} of the whole")

@@ -1,6 +1,7 @@
 """The suite's two tiers: the slow tier's list names tests that exist, and CI's coverage check
 fails where the slow tier covers what the default tier does not."""
 
+import functools
 import importlib.util
 import pathlib
 import subprocess
@@ -19,10 +20,15 @@ def _ci(name):
 
 
 def collected(*args):
-    """The node ids ``python -m pytest ARGS`` would run."""
+    """The node ids ``python -m pytest ARGS`` would run (each set of ARGS collected once)."""
+    return _collected(args)
+
+
+@functools.cache
+def _collected(args):
     out = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", *args], cwd=ROOT,
                          capture_output=True, text=True, check=True).stdout.splitlines()
-    return [line for line in out if "::" in line]
+    return tuple(line for line in out if "::" in line)
 
 
 def test_every_test_of_the_slow_tier_exists():
@@ -30,6 +36,19 @@ def test_every_test_of_the_slow_tier_exists():
     default tier unseen: every listed node id is one the suite collects."""
     assert len(SLOW) > 300
     assert sorted(SLOW - set(collected("--tier=all"))) == []
+
+
+def test_the_claims_stay_in_the_default_tier():
+    """``.ci/tiers.py`` keeps the tests of its ``CLAIMS`` in the default tier: none is listed in
+    tests/slow.txt, and each entry names tests the suite collects (a renamed claim would leave
+    its entry naming nothing), among them every test of tests/test_claims.py."""
+    tiers = _ci("tiers")
+    everything = collected("--tier=all")
+    assert sorted(n for n in SLOW if tiers.is_claim(n)) == []
+    assert all(any(n.startswith(prefix) for n in everything) for prefix in tiers.CLAIMS)
+    claims = {n for n in everything if tiers.is_claim(n)}
+    assert {n for n in everything if n.startswith("tests/test_claims.py::")} < claims
+    assert len(claims) >= 21  # 20 in test_claims.py, 1 in test_midpoint.py
 
 
 def test_a_test_named_on_the_command_line_runs_whatever_its_tier():
@@ -67,7 +86,8 @@ def test_the_coverage_check_names_an_arc_only_the_slow_tier_covers(tmp_path, cap
 def test_the_tiers_are_a_cover_of_every_arc_and_keep_no_test_another_covers(tmp_path):
     """``.ci/tiers.py`` reads each test's arcs from a coverage file with per-test contexts, and its
     set cover keeps the cheap pair that covers a, b and c (Y and Z, 3 s), not the one test of 10 s
-    nor the 0.1 s test whose arc Z covers too (the greedy pass takes it first; the swap drops it)."""
+    nor the 0.1 s test whose arc Z covers too (the greedy pass takes it first; the swap drops it),
+    unless they are kept (``CLAIMS``)."""
     tiers = _ci("tiers")
     path = _data(tmp_path / "per-test", {"": [(1, 2)], "tests/t.py::x|run": [(3, 4), (4, 5), (5, 6)],
                                          "tests/t.py::y|run": [(3, 4)], "tests/t.py::z|run": [(4, 5), (5, 6)],
@@ -76,3 +96,8 @@ def test_the_tiers_are_a_cover_of_every_arc_and_keep_no_test_another_covers(tmp_
     assert base == {("/src/galerkin_jax/_solve.py", 1, 2)} and sorted(cover) == [f"tests/t.py::{n}" for n in "wxyz"]
     cost = {f"tests/t.py::{n}": c for n, c in zip("xyzw", (10.0, 1.0, 2.0, 0.1))}
     assert tiers.default_tier(cover, base, cost) == {"tests/t.py::y", "tests/t.py::z"}
+    # kept tests (the claims) stay where the cover would drop them: w, whose arc z covers too,
+    # beside y and z; x (10 s, covered by y and z for 3 s), which then needs no other test
+    assert tiers.default_tier(cover, base, cost, {"tests/t.py::w"}) == {"tests/t.py::w", "tests/t.py::y",
+                                                                      "tests/t.py::z"}
+    assert tiers.default_tier(cover, base, cost, {"tests/t.py::x"}) == {"tests/t.py::x"}
