@@ -48,7 +48,7 @@ SCHEMES = {
     "mclachlan6": (6, _symmetric([0.1867, 0.55549702371247839916, 0.12946694891347535806,
                                   -0.84326562338773460855])),
     # fifteen stages, s15odr8 [Kahan & Li 1997]; HLW eq. (V.3.12), "p8 s15"
-    "kahan_li8": (8, _symmetric([0.74167036435061295344822780, -0.40910082580003159399730010,
+    "kahan_li8_s15": (8, _symmetric([0.74167036435061295344822780, -0.40910082580003159399730010,
                                  0.19075471029623837995387626, -0.57386247111608226665638773,
                                  0.29906418130365592384446354, 0.33462491824529818378495798,
                                  0.31529309239676659663205666])),
@@ -62,6 +62,9 @@ SCHEMES = {
                                   0.1851469357165877327, -0.40955234342085141934, 0.14440594108001204106,
                                   0.27833550039367965131, 0.31495668391629485789])),
 }
+
+# older names of schemes: name -> the name in SCHEMES
+ALIASES = {"kahan_li8": "kahan_li8_s15"}
 
 # a Hermite cubic on [0, 1] in the Legendre basis: rows the coefficients of P_0 .. P_3 of
 # alpha -> H10(alpha), H01(alpha), H11(alpha), the weights of h f(z0), dz, h f(z1)
@@ -122,7 +125,7 @@ class Composition(AbstractMethod):
         "yoshida6": order 6, 7 stages [Yoshida 1990, Table 1, A].
         "kahan_li6": order 6, 9 stages, s9odr6a [Kahan & Li 1997].
         "mclachlan6": order 6, 9 stages, gamma_1 = 0.1867 [McLachlan 1995].
-        "kahan_li8": order 8, 15 stages, s15odr8 [Kahan & Li 1997].
+        "kahan_li8_s15": order 8, 15 stages, s15odr8 [Kahan & Li 1997]; "kahan_li8" names it too.
         "kahan_li8_s17": order 8, 17 stages, s17odr8b [Kahan & Li 1997].
         "mclachlan8": order 8, 17 stages [McLachlan 1995].
     Kahan and Li's as listed in Hairer, Lubich, Wanner, Geometric Numerical Integration (2006),
@@ -148,6 +151,8 @@ class Composition(AbstractMethod):
 
     def __post_init__(self):
         if isinstance(self.scheme, str):
+            if self.scheme in ALIASES:  # one name per scheme: one compilation
+                object.__setattr__(self, "scheme", ALIASES[self.scheme])
             if self.scheme not in SCHEMES:
                 raise ValueError(f"Composition: unknown scheme {self.scheme!r}; known: {', '.join(SCHEMES)}.")
             return
@@ -165,6 +170,15 @@ class Composition(AbstractMethod):
     def coefficients(self):
         """The coefficients gamma_i, a tuple of floats."""
         return SCHEMES[self.scheme][1] if isinstance(self.scheme, str) else tuple(float(x) for x in self.scheme)
+
+    @property
+    def forces_per_step(self):
+        """Gradients of V per element of a run where the method is explicit (``_explicit``): the
+        stages times the method's own count (its force is carried from stage to stage, first
+        same as last); None where the method has no count (it iterates, or its closed form
+        depends on H: ``GalerkinVI(1, rule)`` counts 1, its explicit form on a separable H)."""
+        inner = getattr(self.method, "forces_per_step", None)
+        return None if inner is None else len(self.coefficients) * inner
 
     @property
     def fixed_point(self):

@@ -9,6 +9,7 @@ import pytest
 
 import galerkin_jax as gj
 from galerkin_jax._composition import SCHEMES
+from galerkin_jax._explicit import explicit_form
 
 import helpers
 
@@ -387,3 +388,35 @@ def test_the_structure_is_read_once_per_function_and_shape(monkeypatch):
     for _ in range(5):
         q, p = gj.step(H, q, p, method=VERLET, h=0.1)
     assert calls == []
+
+
+def test_integrate_refuses_zero_steps():
+    H, q0, p0 = helpers.kepler()
+    with pytest.raises(ValueError, match=r"n_steps must be an integer >= 1, got 0"):
+        gj.integrate(H, q0, p0, method=gj.GalerkinVI(1, gj.trapezoid()), h=0.1, n_steps=0)
+
+
+def test_kahan_li_schemes_are_named_by_their_stage_counts():
+    """s15odr8 and s17odr8b are "kahan_li8_s15" and "kahan_li8_s17"; "kahan_li8", the old name
+    of the 15-stage one, is the same scheme."""
+    assert len(SCHEMES["kahan_li8_s15"][1]) == 15 and len(SCHEMES["kahan_li8_s17"][1]) == 17
+    old, new = gj.Composition(VERLET, "kahan_li8"), gj.Composition(VERLET, "kahan_li8_s15")
+    assert old.coefficients == new.coefficients and old == new
+
+
+@pytest.mark.parametrize("inner, per_stage", [(gj.GalerkinVI(1, gj.trapezoid()), 1), (gj.Splitting("leapfrog"), 1),
+                                              (gj.Splitting("blanes_moan_rkn4"), 6), (gj.Splitting("blanes_moan4"), 6)])
+def test_forces_per_step_of_an_explicit_composition(inner, per_stage):
+    """One element's program holds as many gradients of V (sin, from -cos) as a composition's
+    ``forces_per_step`` says: stages times the inner method's count (its force first same as
+    last, carried from stage to stage); None for a method that iterates."""
+    H = lambda q, p: 0.5 * (p @ p) - jnp.sum(jnp.cos(q))
+    q, p = jnp.array([0.3, 0.1]), jnp.array([0.0, 0.2])
+    for scheme, stages in (("yoshida4", 3), ("kahan_li8_s15", 15)):
+        method = gj.Composition(inner, scheme)
+        explicit = explicit_form(method, H, q, p, None, gj.SolverOptions())
+        g0 = explicit.explicit_start(H, q, p)
+        jaxpr = jax.make_jaxpr(lambda q, p, g: explicit.explicit(H, q, p, 0.1, g))(q, p, g0)
+        count = sum(eqn.primitive.name == "sin" for eqn in jaxpr.jaxpr.eqns)
+        assert count == stages * per_stage == method.forces_per_step == explicit.forces_per_step
+    assert gj.Composition(gj.CG(1, gj.gauss_legendre(1))).forces_per_step is None
