@@ -148,6 +148,7 @@ class Composition(AbstractMethod):
     scheme: object = dataclasses.field(default="yoshida4", metadata=dict(static=True))
 
     partition_axis = None
+    embedded_alpha = 0.25  # the Hermite cubic matches the field at the ends (``embedded_error``)
 
     def __post_init__(self):
         if isinstance(self.scheme, str):

@@ -95,6 +95,7 @@ class Splitting(AbstractMethod):
 
     fixed_point = True  # dR/dZ = I
     partition_axis = None
+    embedded_alpha = 0.25  # the Hermite cubic matches the field at the ends (``embedded_error``)
     settle = 0
     hamiltonian = True
 
