@@ -497,3 +497,14 @@ def test_the_default_estimate_of_a_composition_finds_its_largest_local_error(h, 
     for estimate in (sol.error_estimate, iterated.error_estimate):
         np.testing.assert_allclose(float(estimate), float(full.error_estimate), rtol=1e-3)
     assert 0.8 < float(full.error_estimate) / true < 1.2, (float(full.error_estimate), true)
+
+
+@pytest.mark.parametrize("method", [gj.Splitting("blanes_moan_rkn4"), gj.Composition(VERLET, "yoshida4")])
+@pytest.mark.parametrize("error_estimate", [True, False])
+def test_a_non_finite_explicit_run_never_has_status_0(method, error_estimate):
+    """The quartic potential far beyond the stability limit (h = 1) overflows within five elements:
+    NONFINITE, with or without an estimate (NaN never passes as status 0, nor as INACCURATE)."""
+    H = lambda q, p: p @ p / 2 + jnp.sum(q ** 4)
+    sol = gj.integrate(H, jnp.array([1.7, 0.5]), jnp.array([0.3, 0.0]), method=method, h=1.0, n_steps=40,
+                       error_estimate=error_estimate)
+    assert int(sol.status) == gj.Status.NONFINITE and bool(jnp.isnan(sol.q[-1]).all())
