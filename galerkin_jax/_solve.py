@@ -86,7 +86,8 @@ from ._solver_options import SolverOptions, solver_from
 
 class Status(enum.IntEnum):
     """Codes of ``Solution.status``; the first failure of a run is kept, and every state after it
-    is NaN (a run stopped by MAX_STEPS or DTMIN keeps its time and state where it stopped).
+    is NaN (a run stopped by MAX_STEPS or DTMIN keeps its time and state where it stopped; an
+    INACCURATE one, which ran to its end, keeps every state and its estimate).
     ``status_message(code)`` says what went wrong and what to try.
 
     Attributes:
