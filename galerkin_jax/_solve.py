@@ -109,8 +109,8 @@ class Status(enum.IntEnum):
             of those the estimate is taken on: the four where the embedded one peaks, or every one
             with ``error_estimate="full"``) is at least ``NO_ACCURACY`` (0.1) times the size
             ``max |z|`` of the state it starts from, or is not finite (``relative_error``,
-            ``accuracy_status``). Unlike the failures above, the states and the estimate are
-            kept, as computed: look at them. Decided where a run has an estimate (not with
+            ``accuracy_status``). Unlike the failures above, the states, the estimate and
+            their derivatives are kept, as computed: look at them. Decided where a run has an estimate (not with
             ``error_estimate=False``, nor for a method given a Lagrangian, whose estimate is
             NaN), for fixed steps, controllers and sweeps alike, explicit methods (which have
             no solve to fail) and implicit ones.
