@@ -37,9 +37,9 @@ from ._controllers import (PIDController, TimeTransform, embedded_error, event_v
                            user_args)
 from ._defect import symplectic_field
 from ._explicit import is_explicit
-from ._march import (bind_args, compensated_add, continued, element_residual, input_status, peak_estimate, peak_start,
-                     peak_update, state_scale)
-from ._solve import Status, initial_matrix, solve
+from ._march import (bind_args, compensated_add, continued, element_residual, embedded_alpha, estimated_status,
+                     input_status, peak_estimate, peak_start, peak_update, state_scale)
+from ._solve import Status, initial_matrix, relative_error, solve
 
 _LANDING = 8  # shortened attempts of a time-transformed run's last element (Newton converges in 2-3)
 
@@ -158,7 +158,8 @@ class Counts(NamedTuple):
 
 class Record(NamedTuple):
     """The accepted elements: each one's length ``hs`` (row n: element n), the smallest and
-    largest (``h_min``, ``h_max``), and the largest local error ``estimate`` (with
+    largest (``h_min``, ``h_max``), the largest local error ``estimate`` and ``relative`` error
+    (``_solve.relative_error``; with
     ``estimate=True``, the ``peak`` elements where the embedded one peaks, ``_march.peak_update``;
     else None)."""
 
@@ -167,6 +168,7 @@ class Record(NamedTuple):
     h_max: jax.Array
     estimate: jax.Array
     peak: dict = None
+    relative: jax.Array = None
 
 
 class Saves(NamedTuple):
@@ -464,7 +466,8 @@ def _initial_carry(loop, z0, t0, h0, guess, acc0, memory, memo):
         status=input_status(q0, p0, h0), done=None, counts=Counts(*(jnp.zeros((), jnp.int32) for _ in Counts._fields)),
         record=Record(hs=jnp.zeros((loop.max_steps,), dtype), h_min=jnp.full((), jnp.inf, dtype),
                       h_max=jnp.zeros((), dtype), estimate=jnp.zeros((), dtype),
-                      peak=peak_start(q0, p0, guess, h0) if loop.estimate is True else None),
+                      peak=peak_start(q0, p0, guess, h0) if loop.estimate is True else None,
+                      relative=jnp.zeros((), dtype)),
         acc=None if loop.observe is None else acc0,
         saves=None if loop.ts is None else _start_saves(loop.ts, t0, z0),
         dense=_start_dense(loop.dense, loop.max_steps, loop.m, t0, z0) if loop.dense else None,
@@ -532,7 +535,8 @@ def _attempt(loop, c, active):
     memo = None
     if loop.explicit:
         Z, dz, memo = method.explicit(H_bound, q, p, h, node.memo)
-        z1, comp = z + jnp.concatenate(dz), node.comp
+        dz = jnp.concatenate(dz)
+        z1, comp = z + dz, node.comp
         matrix, iterations, trips, lenient = c.control.matrix, 0, 0, 0
         status = jnp.int32(Status.SUCCESS)
     else:
@@ -542,7 +546,8 @@ def _attempt(loop, c, active):
         Z, matrix, iterations, status, trips, lenient = solve(
             loop.fn, (method, q, p, h, loop.args), predicted, constant, c.control.matrix, state_scale(z), ~active,
             c.counts.steps == 0, loop.options)
-        z1, comp = compensated_add(z, jnp.concatenate(method.increment(H_bound, q, p, Z, h)), node.comp)
+        dz = jnp.concatenate(method.increment(H_bound, q, p, Z, h))
+        z1, comp = compensated_add(z, dz, node.comp)
     W = method.polynomial(H_bound, q, p, Z, h)
     solved = (status == Status.SUCCESS) & jnp.all(jnp.isfinite(z1))
     status = jnp.where((status == Status.SUCCESS) & ~solved, Status.NONFINITE, status)
@@ -550,7 +555,8 @@ def _attempt(loop, c, active):
     # an explicit element's force at its end (``_explicit``) where the estimate only ranks
     # elements; a controller's steps take the field evaluated anew, as an iterated run's
     field = method.explicit_field(H_bound, *jnp.split(z1, 2), memo) if loop.explicit and not loop.pid else None
-    embedded = embedded_error(H_bound, q, p, W, h, field) if loop.pid or loop.estimate is True else None
+    embedded = (embedded_error(H_bound, q, p, W, h, dz, field, embedded_alpha(method))
+                if loop.pid or loop.estimate is True else None)
     return Attempt(q=q, p=p, z=z, t=t, h=h, last=last, Z=Z, z1=z1, comp=comp, W=W, solved=solved, status=status,
                    embedded=embedded, matrix=matrix, iterations=iterations, trips=trips, lenient=lenient, memo=memo)
 
@@ -693,7 +699,9 @@ def _body(loop, c):
     record = c.record
     record = Record(hs=hs, h_min=jnp.where(accept, jnp.minimum(record.h_min, step.h), record.h_min),
                     h_max=jnp.where(accept, jnp.maximum(record.h_max, step.h), record.h_max),
-                    estimate=jnp.where(accept, jnp.fmax(record.estimate, local), record.estimate), peak=peak)
+                    estimate=jnp.where(accept, jnp.fmax(record.estimate, local), record.estimate), peak=peak,
+                    relative=jnp.where(accept, jnp.maximum(record.relative, relative_error(local, step.z)),
+                                       record.relative))
     return Carry(node=node, control=_control(c, step, verdict, active), status=status,
                  done=c.done | fail | (active & finished) | out_of_steps, counts=counts, record=record, acc=acc,
                  saves=saves, dense=dense, events=events, checkpoints=checkpoints)
@@ -768,5 +776,6 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     c = c._replace(status=status, done=status != Status.SUCCESS)
     c = jax.lax.while_loop(lambda c: _any_member(~c.done), functools.partial(_body, loop), c)
     if estimate is True:
-        c = c._replace(record=c.record._replace(estimate=peak_estimate(method, H_bound, c.record.peak)))
-    return c
+        largest, relative = peak_estimate(method, H_bound, c.record.peak)
+        c = c._replace(record=c.record._replace(estimate=largest, relative=relative))
+    return c._replace(status=estimated_status(method, estimate, c.status, c.record.relative))

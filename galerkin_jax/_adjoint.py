@@ -46,7 +46,7 @@ from . import _adaptive, _output
 from ._controllers import event_value, symbolic_zero as _symbolic_zero, user_args
 from ._explicit import is_explicit
 from ._march import bind_args, continued, element_residual, state_scale
-from ._solve import Options, Status, implicit, initial_matrix, solve
+from ._solve import Options, Status, implicit, initial_matrix, keeps_state, solve
 
 # the elements whose roots (z_n, t_n, Z_n) a gradient keeps (``Spec.stretch``), at most so many and
 # so many bytes of them: a run that fits is not solved again
@@ -455,7 +455,7 @@ def _terminal(spec):
 
 def _landed(spec, c, n):
     """Element n is the one that lands on t1: the last of a run that reached t1."""
-    return (c["status"] == Status.SUCCESS) & ~_terminated(spec, c) & (n == c["steps"] - 1)
+    return keeps_state(c["status"]) & ~_terminated(spec, c) & (n == c["steps"] - 1)
 
 
 def _resolve_options(spec, inputs):
@@ -715,7 +715,7 @@ def _tangent_sweep(spec, inputs, c, d, wanted):
     guess = inputs["method"].initial_guess(*jnp.split(z0, 2))
     previous = (z0, guess, jnp.ones((), dtype), jnp.zeros((), bool))
     s = (jnp.zeros((), jnp.int32), (z0, acc0), (dz0, d_acc0), jnp.asarray(inputs["t0"], dtype),
-         initial_matrix(guess, options), previous, c["status"] == Status.SUCCESS, out)
+         initial_matrix(guess, options), previous, keeps_state(c["status"]), out)
     *_, d_carry, _, _, _, ok, out = jax.lax.while_loop(lambda s: s[0] < c["steps"], body, s)
     for kind in kinds:  # a row no element wrote has no tangent
         for key in kind.keys:
@@ -802,7 +802,7 @@ def _adjoint_sweep(spec, inputs, c, ct, wanted):
     carry_bar = (jnp.zeros_like(z0), ct["acc"])
     times_bar = tuple(jnp.zeros((), dtype) for _ in times)
     extra_bar = {"ts": None if inputs["ts"] is None else jnp.zeros_like(inputs["ts"])}
-    s = (last, c["kept"], c["status"] == Status.SUCCESS, carry_bar, zeros(theta), times_bar, extra_bar)
+    s = (last, c["kept"], keeps_state(c["status"]), carry_bar, zeros(theta), times_bar, extra_bar)
     _, _, ok, (lam, acc_bar), (method_bar, run_args_bar), (t0_bar, t1_bar, h_bar), extra_bar = jax.lax.while_loop(
         lambda s: s[0] >= 0, segment, s)
     q0_bar, p0_bar, args_bar, t0_start_bar = start_vjp((lam, run_args_bar))

@@ -38,7 +38,7 @@ def check_step_size(h):
 
 
 def check_counts(n_steps, save_every):
-    for name, value, least in (("n_steps", n_steps, 0), ("save_every", save_every, 1)):
+    for name, value, least in (("n_steps", n_steps, 1), ("save_every", save_every, 1)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
             raise ValueError(f"{name} must be an integer >= {least}, got {value!r}.")
     if n_steps % save_every:

@@ -20,7 +20,7 @@ import numpy as np
 import galerkin_jax as gj
 
 from . import _checks, scenes
-from ._composition import SCHEMES as COMPOSITIONS
+from ._composition import ALIASES, SCHEMES as COMPOSITIONS
 from ._splitting import SCHEMES as SPLITTINGS
 
 EXIT_BAD_INPUT, EXIT_BAD_OPTION = 1, 2
@@ -101,8 +101,9 @@ class MethodSpec:
     inner: Optional["MethodSpec"] = None  # the method a composition composes
 
 
-def _scheme(text, schemes, what):
+def _scheme(text, schemes, what, aliases=None):
     key = text.strip().lower()
+    key = (aliases or {}).get(key, key)
     if key not in schemes:
         raise CliError(f"unknown {what} scheme {text!r}{_suggest(key, list(schemes))}; choose one of "
                        f"{', '.join(schemes)}.", EXIT_BAD_OPTION)
@@ -135,7 +136,7 @@ def parse_spec(text):
     (default blanes_moan4); ``"verlet"``: ``vi1:trapezoid``."""
     if "@" in text:
         scheme, inner = text.split("@", 1)
-        return MethodSpec("comp", scheme=_scheme(scheme, COMPOSITIONS, "composition"), inner=complete(parse_spec(inner)))
+        return MethodSpec("comp", scheme=_scheme(scheme, COMPOSITIONS, "composition", ALIASES), inner=complete(parse_spec(inner)))
     split = re.fullmatch(r"\s*split(?:ting)?(?::([a-z0-9_]+))?\s*", text.lower())
     if split:
         return MethodSpec("split", scheme=_scheme(split.group(1) or "blanes_moan4", SPLITTINGS, "splitting"))

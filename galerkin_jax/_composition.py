@@ -48,7 +48,7 @@ SCHEMES = {
     "mclachlan6": (6, _symmetric([0.1867, 0.55549702371247839916, 0.12946694891347535806,
                                   -0.84326562338773460855])),
     # fifteen stages, s15odr8 [Kahan & Li 1997]; HLW eq. (V.3.12), "p8 s15"
-    "kahan_li8": (8, _symmetric([0.74167036435061295344822780, -0.40910082580003159399730010,
+    "kahan_li8_s15": (8, _symmetric([0.74167036435061295344822780, -0.40910082580003159399730010,
                                  0.19075471029623837995387626, -0.57386247111608226665638773,
                                  0.29906418130365592384446354, 0.33462491824529818378495798,
                                  0.31529309239676659663205666])),
@@ -63,6 +63,9 @@ SCHEMES = {
                                   0.27833550039367965131, 0.31495668391629485789])),
 }
 
+# older names of schemes: name -> the name in SCHEMES
+ALIASES = {"kahan_li8": "kahan_li8_s15"}
+
 # a Hermite cubic on [0, 1] in the Legendre basis: rows the coefficients of P_0 .. P_3 of
 # alpha -> H10(alpha), H01(alpha), H11(alpha), the weights of h f(z0), dz, h f(z1)
 _HERMITE = np.stack([np.polynomial.legendre.poly2leg(np.polynomial.Polynomial(c)(
@@ -76,6 +79,41 @@ def hermite_polynomial(H, q0, p0, dq, dp, h):
     field = hamilton_field(H)
     columns = jnp.stack([h * field(q0, p0), jnp.concatenate([dq, dp]), h * field(q0 + dq, p0 + dp)])
     return jnp.asarray(_HERMITE, q0.dtype) @ columns
+
+
+class ExplicitMap(AbstractMethod):
+    """A method whose element is an explicit map z0 -> z1, computed from a fresh start
+    (``explicit(H, q0, p0, h, explicit_start(H, q0, p0))``): a splitting, Tao's map. Its
+    unknowns are the increments Z = (dq | dp), the root of R(Z) = Z - (z1 - z0), which a run
+    whose elements the solver iterates (``save_at``, events, a sweep) finds in one update; its
+    element polynomial is the Hermite cubic through the end states (``hermite_polynomial``),
+    which matches Hamilton's field at both ends, so the embedded estimate reads its defect
+    inside, at alpha = 1/4 (``embedded_error``)."""
+
+    fixed_point = True  # dR/dZ = I
+    partition_axis = None
+    embedded_alpha = 0.25
+    settle = 0
+    hamiltonian = True
+
+    def initial_guess(self, q0, p0, previous=None, ratio=None):
+        if previous is not None and ratio is None:
+            return previous[2]  # the previous increments
+        return jnp.zeros(2 * q0.shape[0], q0.dtype)
+
+    def residual(self, H, q0, p0, Z, h, part=None):
+        """Z less the increments the map computes (its root: those increments)."""
+        return Z - self.explicit(H, q0, p0, h, self.explicit_start(H, q0, p0))[0]
+
+    def increment(self, H, q0, p0, Z, h):
+        return jnp.split(Z, 2)
+
+    def polynomial(self, H, q0, p0, Z, h):
+        return hermite_polynomial(H, q0, p0, *self.increment(H, q0, p0, Z, h), h)
+
+    def explicit_form(self, structure):
+        """Itself: its element is explicit."""
+        return self
 
 
 def _is_symmetric_rule(rule):
@@ -124,7 +162,7 @@ class Composition(AbstractMethod):
         "yoshida6": order 6, 7 stages [Yoshida 1990, Table 1, A].
         "kahan_li6": order 6, 9 stages, s9odr6a [Kahan & Li 1997].
         "mclachlan6": order 6, 9 stages, gamma_1 = 0.1867 [McLachlan 1995].
-        "kahan_li8": order 8, 15 stages, s15odr8 [Kahan & Li 1997].
+        "kahan_li8_s15": order 8, 15 stages, s15odr8 [Kahan & Li 1997]; "kahan_li8" names it too.
         "kahan_li8_s17": order 8, 17 stages, s17odr8b [Kahan & Li 1997].
         "mclachlan8": order 8, 17 stages [McLachlan 1995].
     Kahan and Li's as listed in Hairer, Lubich, Wanner, Geometric Numerical Integration (2006),
@@ -147,9 +185,12 @@ class Composition(AbstractMethod):
     scheme: object = dataclasses.field(default="yoshida4", metadata=dict(static=True))
 
     partition_axis = None
+    embedded_alpha = 0.25  # the Hermite cubic matches the field at the ends (``embedded_error``)
 
     def __post_init__(self):
         if isinstance(self.scheme, str):
+            if self.scheme in ALIASES:  # one name per scheme: one compilation
+                object.__setattr__(self, "scheme", ALIASES[self.scheme])
             if self.scheme not in SCHEMES:
                 raise ValueError(f"Composition: unknown scheme {self.scheme!r}; known: {', '.join(SCHEMES)}.")
             return
@@ -180,6 +221,15 @@ class Composition(AbstractMethod):
         """Where the method composes on a space of its own (``lifted``): this composition
         composed again with ``coefficients`` (a composition of a composition); else None."""
         return None if self.lifted is None else self.lifted.composed(coefficients)
+
+    @property
+    def forces_per_step(self):
+        """Gradients of V per element of a run where the method is explicit (``_explicit``): the
+        stages times the method's own count (its force is carried from stage to stage, first
+        same as last); None where the method has no count (it iterates, or its closed form
+        depends on H: ``GalerkinVI(1, rule)`` counts 1, its explicit form on a separable H)."""
+        inner = getattr(self.method, "forces_per_step", None)
+        return None if inner is None else len(self.coefficients) * inner
 
     @property
     def fixed_point(self):

@@ -47,6 +47,7 @@ class ExplicitVI(AbstractMethod):
     partition_axis = 0
     settle = 0
     hamiltonian = True
+    forces_per_step = 1  # g(q1); g(q0) is the previous element's
 
     def initial_guess(self, q0, p0, previous=None, ratio=None):
         return self.method.initial_guess(q0, p0, previous, ratio=ratio)

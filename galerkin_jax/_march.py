@@ -23,7 +23,8 @@ import jax.numpy as jnp
 from . import _output, _progress
 from ._controllers import embedded_error
 from ._explicit import is_explicit
-from ._solve import Options, SolverOptions, Status, initial_matrix, solve, solver_from
+from ._solve import (Options, SolverOptions, Status, accuracy_status, initial_matrix, keeps_state, relative_error,
+                     solve, solver_from)
 
 
 def bind_args(H, args):
@@ -76,8 +77,9 @@ def input_status(q0, p0, h):
 
 
 def nan_if_failed(x, status):
-    """``x`` where ``status`` is SUCCESS, NaN elsewhere; ``status`` has shape () or ``x.shape[:1]``."""
-    failed = (status != Status.SUCCESS).reshape(status.shape + (1,) * (jnp.ndim(x) - status.ndim))
+    """``x`` where ``status`` is SUCCESS (or INACCURATE, a run that went to its end:
+    ``_solve.keeps_state``), NaN elsewhere; ``status`` has shape () or ``x.shape[:1]``."""
+    failed = ~keeps_state(status).reshape(status.shape + (1,) * (jnp.ndim(x) - status.ndim))
     return jnp.where(failed, jnp.nan, x)
 
 
@@ -215,12 +217,20 @@ def peak_start(q0, p0, Z0, h):
                 h=stack(jnp.asarray(h, q0.dtype)))
 
 
-def embedded_size(method, H_bound, q, p, Z, h, field=None):
-    """The largest entry of an element's embedded estimate (``embedded_error``, one evaluation of
-    Hamilton's field, or none where ``field``, F at the element's end, is given), a number to
-    rank elements by, not a function to differentiate."""
-    q, p, Z, h, field = jax.lax.stop_gradient((q, p, Z, h, field))
-    return jnp.max(jnp.abs(embedded_error(H_bound, q, p, method.polynomial(H_bound, q, p, Z, h), h, field)))
+def embedded_size(method, H_bound, q, p, Z, h, increment, field=None):
+    """The largest entry of an element's embedded estimate (``embedded_error``, at the method's
+    ``embedded_alpha``; one evaluation of Hamilton's field, or none where ``field``, F at the
+    element's end, is given and read), a number to rank elements by, not a function to
+    differentiate."""
+    q, p, Z, h, increment, field = jax.lax.stop_gradient((q, p, Z, h, increment, field))
+    W = method.polynomial(H_bound, q, p, Z, h)
+    return jnp.max(jnp.abs(embedded_error(H_bound, q, p, W, h, increment, field, embedded_alpha(method))))
+
+
+def embedded_alpha(method):
+    """Where in the element the embedded estimate takes the defect (``embedded_error``): the
+    method's ``embedded_alpha``, 1 (the end) by default."""
+    return float(getattr(method, "embedded_alpha", 1.0))
 
 
 def peak_update(peak, size, q, p, Z, h, ok):
@@ -235,11 +245,22 @@ def peak_update(peak, size, q, p, Z, h, ok):
 def peak_estimate(method, H_bound, peak):
     """The run's largest local error: the full a posteriori estimate (``local_error``) on the
     elements where the embedded one, of lower order, peaks (the full one peaks among them: one
-    field evaluation per element instead of J + 1 and J Jacobian products)."""
+    field evaluation per element instead of J + 1 and J Jacobian products). Returns ``(estimate,
+    relative)``, the largest of the errors and of their ``relative_error``s."""
     frozen = jax.lax.stop_gradient(peak)
     local = jax.vmap(lambda q, p, Z, h: method.local_error(H_bound, q, p, Z, h))(
         frozen["q"], frozen["p"], frozen["Z"], frozen["h"])
-    return jax.lax.stop_gradient(jnp.max(jnp.where(frozen["size"] > -jnp.inf, local, 0.0)))
+    taken = frozen["size"] > -jnp.inf
+    relative = jax.vmap(relative_error)(local, jnp.concatenate([frozen["q"], frozen["p"]], axis=1))
+    return jax.lax.stop_gradient((jnp.max(jnp.where(taken, local, 0.0)), jnp.max(jnp.where(taken, relative, 0.0))))
+
+
+def estimated_status(method, estimate, status, relative):
+    """The run's status with its accuracy decided (``_solve.accuracy_status``) where it has an
+    estimate: ``estimate`` True or "full" and a method given a Hamiltonian (a Lagrangian's is NaN)."""
+    if estimate is False or not method.hamiltonian:
+        return status
+    return accuracy_status(status, relative)
 
 
 # the run's counters, carried as one int32 array (one fused kernel per element, not one each);
@@ -293,7 +314,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
                      misses=jnp.zeros((max(solver.miss_orders),) + guess.shape, guess.dtype),
                      correction=jnp.zeros_like(guess), matrix=initial_matrix(guess, options), counters=counters0,
                      done=jnp.zeros((), jnp.int32))
-    carry.update(estimate=jnp.zeros((), z0.dtype), acc=acc0)
+    carry.update(estimate=jnp.zeros((), z0.dtype), relative=jnp.zeros((), z0.dtype), acc=acc0)
     if estimate is True:
         carry["peak"] = peak_start(q0, p0, guess, h)
 
@@ -304,7 +325,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         idle = jnp.zeros((), bool) if n_active is None else done >= n_active
         return h_el, idle
 
-    def extras(c, new, q, p, Z, h_el, z, z1, ok, idle, field=None):
+    def extras(c, new, q, p, Z, h_el, dz, z, z1, ok, idle, field=None):
         """What a run asks for beyond the state: the estimate, the diagnostics, the idling of a
         member past t1, the progress bar and the dense output."""
         full = estimate == "full"
@@ -312,10 +333,11 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
             frozen = jax.lax.stop_gradient((q, p, Z, h_el, args))
             local = jax.lax.stop_gradient(method.local_error(bind_args(H, frozen[4]), *frozen[:4]))
             new["estimate"] = jnp.maximum(c["estimate"], local)
+            new["relative"] = jnp.maximum(c["relative"], relative_error(local, jnp.concatenate([q, p])))
         if observe is not None:
             new["acc"] = observe(c["acc"], *split(state(new)))
         if estimate is True:
-            size = embedded_size(method, H_bound, q, p, Z, h_el, None if field is None else field())
+            size = embedded_size(method, H_bound, q, p, Z, h_el, dz, None if field is None else field())
             new["peak"] = peak_update(c["peak"], size, q, p, Z, h_el, ok & ~idle)
         if n_active is not None:
             new = jax.tree.map(lambda a, b: jnp.where(idle, a, b), dict(c, done=c["done"] + 1), new)
@@ -340,8 +362,8 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         new = dict(c, q=q1, p=p1, memo=memo, steps=c["steps"] + ok, done=c["done"] + 1,
                    status=jnp.where(ok | failed, c["status"], Status.NONFINITE).astype(jnp.int32))
         z = jnp.concatenate([q, p]) if dense else None
-        return extras(c, new, q, p, Z, h_el, z, jnp.concatenate([q1, p1]) if dense else None, ok, idle,
-                      field=lambda: method.explicit_field(H_bound, q1, p1, memo))
+        return extras(c, new, q, p, Z, h_el, jnp.concatenate([dq, dp]), z, jnp.concatenate([q1, p1]) if dense else None,
+                      ok, idle, field=lambda: method.explicit_field(H_bound, q1, p1, memo))
 
     def element(c):
         z, counters = c["z"], c["counters"]
@@ -352,8 +374,8 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         Z, matrix, iterations, status, trips, lenient = solve(
             fn, (method, q, p, h_el, args), Z_pred, constant, c["matrix"], c["scale"], failed | idle,
             c["done"] == 0, options)
-        dz = method.increment(H_bound, q, p, Z, h_el)
-        z1, comp = compensated_add(z, jnp.concatenate(dz), c["comp"])
+        dz = jnp.concatenate(method.increment(H_bound, q, p, Z, h_el))
+        z1, comp = compensated_add(z, dz, c["comp"])
         scale = state_scale(z1)  # the next element's (NaN or inf where z1 is not finite)
         status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(scale), Status.NONFINITE, status)
         status = jnp.where(failed, counters[_AT["status"]], status)  # the first failure is kept
@@ -365,7 +387,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
                               counters[_AT["lenient"]] + lenient, counters[_AT["steps"]] + ok])
         new = dict(c, **now, comp=comp, misses=misses, correction=correction, matrix=matrix,
                    counters=counters.astype(jnp.int32), done=c["done"] + 1)
-        return extras(c, new, q, p, Z, h_el, z, z1, ok, idle)
+        return extras(c, new, q, p, Z, h_el, dz, z, z1, ok, idle)
 
     def state(c):
         return jnp.concatenate([c["q"], c["p"]]) if explicit else c["z"]
@@ -391,10 +413,11 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
     else:
         counts = {name: final["counters"][i] for i, name in enumerate(COUNTERS)}
     if estimate is True:
-        final["estimate"] = peak_estimate(method, H_bound, final["peak"])
+        final["estimate"], final["relative"] = peak_estimate(method, H_bound, final["peak"])
     elif estimate is False:
         final["estimate"] = jnp.full((), jnp.nan, z0.dtype)
     results = dict(q=q, p=p, estimate=nan_if_failed(final["estimate"], counts["status"]), acc=final["acc"], **counts)
+    results["status"] = estimated_status(method, estimate, counts["status"], final["relative"])
     if kept is not None:
         kept = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), kept)
     return results, saved, kept

@@ -65,6 +65,11 @@ class AbstractMethod(abc.ABC):
             Hamiltonian, whose field refines the element polynomial between the nodes (save
             times, events, dense output: ``_output.refined``); False for a method given a
             Lagrangian, whose polynomial is read as it is.
+        embedded_alpha: a Python float in [0, 1], 1 by default: where in the element the
+            embedded estimate (a ``PIDController``'s, and the default ``error_estimate``'s choice
+            of elements) takes the defect of the polynomial (``_controllers.embedded_error``). A
+            polynomial that matches Hamilton's field at the element's end has no defect there:
+            compositions and splittings, whose polynomial is that Hermite cubic, take 1/4.
 
     Optional members (``_explicit``): ``explicit_form(structure)`` returns, for the structure
     of H that ``gj.structure`` read, a method whose element has a closed form, or None; that
@@ -79,6 +84,7 @@ class AbstractMethod(abc.ABC):
     partition_axis = None
     settle = 0
     hamiltonian = True
+    embedded_alpha = 1.0
 
     @abc.abstractmethod
     def initial_guess(self, q0, p0, previous=None, ratio=None):

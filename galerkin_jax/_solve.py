@@ -86,7 +86,8 @@ from ._solver_options import SolverOptions, solver_from
 
 class Status(enum.IntEnum):
     """Codes of ``Solution.status``; the first failure of a run is kept, and every state after it
-    is NaN (a run stopped by MAX_STEPS or DTMIN keeps its time and state where it stopped).
+    is NaN (a run stopped by MAX_STEPS or DTMIN keeps its time and state where it stopped; an
+    INACCURATE one, which ran to its end, keeps every state and its estimate).
     ``status_message(code)`` says what went wrong and what to try.
 
     Attributes:
@@ -103,6 +104,16 @@ class Status(enum.IntEnum):
             ``t1`` lies beyond the ``max_steps`` elements reserved).
         DTMIN: 5, a step was rejected at ``dtmin`` (or at the round-off of t).
         TIME_TRANSFORM: 6, the time transformation's ``s(q, p)`` was not positive and finite.
+        INACCURATE: 7, the run went to its end, and its error estimate says that a step means
+            nothing: an element's estimated local error (``Solution.error_estimate``'s, the largest
+            of those the estimate is taken on: the four where the embedded one peaks, or every one
+            with ``error_estimate="full"``) is at least ``NO_ACCURACY`` (0.1) times the size
+            ``max |z|`` of the state it starts from, or is not finite (``relative_error``,
+            ``accuracy_status``). Unlike the failures above, the states, the estimate and
+            their derivatives are kept, as computed: look at them. Decided where a run has an estimate (not with
+            ``error_estimate=False``, nor for a method given a Lagrangian, whose estimate is
+            NaN), for fixed steps, controllers and sweeps alike, explicit methods (which have
+            no solve to fail) and implicit ones.
     """
 
     SUCCESS = 0
@@ -112,15 +123,43 @@ class Status(enum.IntEnum):
     MAX_STEPS = 4
     DTMIN = 5
     TIME_TRANSFORM = 6
+    INACCURATE = 7
+
+
+# an element whose estimated local error is this fraction of its state's size means nothing
+# (API contract: the estimate "is large (>= 0.1 for an O(1) state) when a step means nothing")
+NO_ACCURACY = 0.1
+
+
+def relative_error(local, z):
+    """An element's estimated local error ``local`` over the size ``max |z|`` of its start state z
+    (0 where the error is 0, inf where only the state is; NaN where either is NaN)."""
+    scale = jnp.max(jnp.abs(z))
+    return jnp.where(local == 0, 0.0, local / scale)
+
+
+def accuracy_status(status, relative):
+    """``status``, or INACCURATE where it is SUCCESS and the run's largest ``relative_error``
+    ``relative`` is not below ``NO_ACCURACY`` (NaN and inf included). The one place that decides
+    (``march``, ``_adaptive.run``)."""
+    lost = (status == Status.SUCCESS) & ~(relative < NO_ACCURACY)
+    return jnp.where(lost, Status.INACCURATE, status).astype(jnp.int32)
+
+
+def keeps_state(status):
+    """Whether a run of this status keeps its states and estimate as computed: SUCCESS, and
+    INACCURATE, which ran to the end."""
+    return (status == Status.SUCCESS) | (status == Status.INACCURATE)
 
 
 MESSAGES = {
     Status.SUCCESS: (
-        "Every implicit solve converged: to round-off (or to SolverOptions.tolerance, where set), "
-        "except the steps counted in "
-        "stats['num_accepted_stalled'], whose updates stopped shrinking with the residual below "
-        "sqrt(eps) of the state (the floor of an ill-conditioned system). This says nothing about "
-        "accuracy: see error_estimate for the local error of the steps."
+        "The run reached its end with finite states. An implicit method's solves converged: to round-off (or to "
+        "SolverOptions.tolerance, where set), except the steps counted in stats['num_accepted_stalled'], whose "
+        "updates stopped shrinking with the residual below sqrt(eps) of the state (the floor of an "
+        "ill-conditioned system); an explicit one (a Splitting, Stormer-Verlet and its compositions on a "
+        "separable H) has no solve to fail. Every estimated local error is below 0.1 of its state (else status "
+        "INACCURATE); see error_estimate for how accurate the steps are."
     ),
     Status.NEWTON_MAX_ITERATIONS: (
         "An implicit solve did not converge within max_newton_iterations; reduce h or raise the "
@@ -146,6 +185,11 @@ MESSAGES = {
         "of your own there, or use fixed steps or a PIDController. A TimeTransform(s=...) of your own "
         "must stay positive and finite at every state the orbit reaches: look where your s vanishes, changes sign or "
         "divides by zero."
+    ),    Status.INACCURATE: (
+        "The run went to its end, but its error estimate says it has lost all accuracy: an element's estimated "
+        "local error is at least 0.1 of its state's size, or not finite (error_estimate holds the largest; the "
+        "states are as computed). The step is beyond the method's stability or accuracy for this problem: "
+        "reduce h, or use a PIDController with a method that admits one (CG, DG, GalerkinVI)."
     ),
 }
 

@@ -19,9 +19,8 @@ import dataclasses
 
 import jax.numpy as jnp
 
-from ._composition import hermite_polynomial
+from ._composition import ExplicitMap
 from ._explicit import end_field, force, velocity
-from ._method import AbstractMethod
 from ._pytree import pytree_dataclass
 from ._structure import structure
 
@@ -62,7 +61,7 @@ SCHEMES = {
 
 
 @pytree_dataclass
-class Splitting(AbstractMethod):
+class Splitting(ExplicitMap):
     """A splitting method for a separable H = T(p) + V(q): kicks of V, drifts of T (module
     docstring), explicit, symplectic and symmetric.
 
@@ -92,11 +91,6 @@ class Splitting(AbstractMethod):
     """
 
     scheme: str = dataclasses.field(default="blanes_moan4", metadata=dict(static=True))
-
-    fixed_point = True  # dR/dZ = I
-    partition_axis = None
-    settle = 0
-    hamiltonian = True
 
     def __post_init__(self):
         if not isinstance(self.scheme, str) or self.scheme not in SCHEMES:
@@ -162,21 +156,6 @@ class Splitting(AbstractMethod):
         element ends with a kick (the force at q1), else from a force evaluated anew."""
         ends_with_kick = len(self.kicks) > len(self.drifts) and self.kicks[-1] != 0.0
         return end_field(H, q1, p1, memo if ends_with_kick else force(H, q1, p1))
-
-    def initial_guess(self, q0, p0, previous=None, ratio=None):
-        if previous is not None and ratio is None:
-            return previous[2]  # the previous increments
-        return jnp.zeros(2 * q0.shape[0], q0.dtype)
-
-    def residual(self, H, q0, p0, Z, h, part=None):
-        """Z less the increments the splitting computes (its root: those increments)."""
-        return Z - self.explicit(H, q0, p0, h, self.explicit_start(H, q0, p0))[0]
-
-    def increment(self, H, q0, p0, Z, h):
-        return jnp.split(Z, 2)
-
-    def polynomial(self, H, q0, p0, Z, h):
-        return hermite_polynomial(H, q0, p0, *self.increment(H, q0, p0, Z, h), h)
 
     def explicit_form(self, structure):
         """Itself: its element is explicit (``premise`` checked that H is separable)."""

@@ -31,9 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._composition import hermite_polynomial
+from ._composition import ExplicitMap
 from ._defect import hamilton_field
-from ._method import AbstractMethod
 from ._pytree import pytree_dataclass
 
 
@@ -98,7 +97,7 @@ def _check_stages(stages):
 
 
 @pytree_dataclass
-class Tao(AbstractMethod):
+class Tao(ExplicitMap):
     """Tao's explicit map for any (non-separable) H, one element a map of (q, p) alone
     [Tao 2016, Phys. Rev. E 94, 043303] (module docstring).
 
@@ -146,10 +145,6 @@ class Tao(AbstractMethod):
     omega: float = dataclasses.field(default=0.0, metadata=dict(static=True))
     stages: tuple = dataclasses.field(default=(1.0,), metadata=dict(static=True))
 
-    fixed_point = True  # dR/dZ = I
-    partition_axis = None
-    settle = 0
-    hamiltonian = True
     symmetric = False  # to O(h^6), not to round-off: no checkpoint="reversible"
 
     def __post_init__(self):
@@ -189,26 +184,8 @@ class Tao(AbstractMethod):
         q, p, x, y = self.extended(H, q0, p0, h)
         return jnp.max(jnp.abs(jnp.concatenate([q - x, p - y]))) / 2
 
-    def initial_guess(self, q0, p0, previous=None, ratio=None):
-        if previous is not None and ratio is None:
-            return previous[2]  # the previous increments
-        return jnp.zeros(2 * q0.shape[0], q0.dtype)
-
-    def residual(self, H, q0, p0, Z, h, part=None):
-        """Z less the increments the map computes (its root: those increments)."""
-        return Z - self.explicit(H, q0, p0, h, self.explicit_start(H, q0, p0))[0]
-
-    def increment(self, H, q0, p0, Z, h):
-        return jnp.split(Z, 2)
-
-    def polynomial(self, H, q0, p0, Z, h):
-        return hermite_polynomial(H, q0, p0, *self.increment(H, q0, p0, Z, h), h)
-
     def local_error(self, H, q0, p0, Z, h):
         """The larger of the defect estimate (``AbstractMethod.local_error``) and half the
         copies' distance at the element's end (``divergence``)."""
         return jnp.maximum(super().local_error(H, q0, p0, Z, h), self.divergence(H, q0, p0, h))
 
-    def explicit_form(self, structure):
-        """Itself: its element is explicit for any H."""
-        return self

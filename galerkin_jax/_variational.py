@@ -95,6 +95,13 @@ class GalerkinVI(degree_and_rule("s", least=1)):
         Q = _basis.combine(_basis.antiderivative_matrix(self.s), c)
         return jnp.concatenate([Q, jnp.concatenate([mu, jnp.zeros_like(mu[:1])])], axis=1)
 
+    @property
+    def forces_per_step(self):
+        """Gradients of V per element of its closed form on a separable H (``explicit_form``): 1
+        (the force at q1; the one at q0 is the previous element's); None where it has none (s > 1,
+        a point inside (0, 1) or traced points: the element iterates)."""
+        return 1 if self.s == 1 and _explicit.endpoint_indices(self.quadrature) is not None else None
+
     def explicit_form(self, structure):
         """For s = 1, a concrete rule with points at alpha = 0 and 1 only and a separable H: the
         element in closed form (``_explicit.ExplicitVI``; the trapezoid: Stormer-Verlet); else None."""

@@ -44,8 +44,8 @@ A method is KIND[DEGREE][:RULE[POINTS]]: KIND is cg, dg, vi (GalerkinVI), lvi
 (LagrangianVI), mm (ModifiedMidpoint) or dgrad (DiscreteGradient); RULE is gauss
 (Gauss-Legendre), lobatto, radau, midpoint or trapezoid. Examples: cg3:gauss3, dg1:lobatto3, mm;
 verlet is vi1:trapezoid (Stormer-Verlet). SCHEME@METHOD composes a symmetric method
-(SCHEME: yoshida4, suzuki4, mclachlan4, yoshida6, kahan_li6, mclachlan6, kahan_li8,
-kahan_li8_s17, mclachlan8), e.g. kahan_li6@verlet, yoshida4@cg1:gauss1; split:SCHEME is a
+(SCHEME: yoshida4, suzuki4, mclachlan4, yoshida6, kahan_li6, mclachlan6, kahan_li8_s15
+(or kahan_li8), kahan_li8_s17, mclachlan8), e.g. kahan_li6@verlet, yoshida4@cg1:gauss1; split:SCHEME is a
 splitting for separable H (leapfrog, blanes_moan4, blanes_moan6, blanes_moan_rkn4,
 blanes_moan_rkn6), e.g. split:blanes_moan_rkn6; tao is Tao's explicit map for any H (e.g.
 yoshida4@tao: order 4). See docs/which-method.md.

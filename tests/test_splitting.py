@@ -249,8 +249,10 @@ def test_the_field_at_an_elements_end_and_the_default_error_estimate(name):
     the element ends with a kick (leapfrog, the RKN schemes) and from a fresh one where it ends
     with a drift (the PRK schemes, whose last kick is zero): equal to autodiff's to round-off
     (measured <= 1.1e-16). The default estimate, the full one on the four elements where the
-    embedded one (read from that field) peaks, runs and lies at or below "full"'s exact maximum:
-    measured 0.66-0.85 of it on Henon-Heiles (Verlet's own: 0.82)."""
+    embedded one (the Hermite cubic's defect at alpha = 1/4, ``embedded_alpha``) peaks, runs and
+    lies at or below "full"'s exact maximum: measured 1.0 (leapfrog), 0.39 (blanes_moan4, whose
+    local error varies 2.4x over the run and peaks where the cubic's defect does not) and 0.99
+    (blanes_moan_rkn6) of it on Henon-Heiles."""
     method = gj.Splitting(name)
     H = henon_heiles
     g0 = method.explicit_start(H, HH_Q0, HH_P0)
@@ -262,4 +264,4 @@ def test_the_field_at_an_elements_end_and_the_default_error_estimate(name):
             for est in (True, "full")}
     assert all(int(sol.status) == 0 for sol in runs.values())
     ratio = float(runs[True].error_estimate) / float(runs["full"].error_estimate)
-    assert 0.6 < ratio <= 1.0 + 1e-12
+    assert 0.35 < ratio <= 1.0 + 1e-12
