@@ -92,8 +92,9 @@ class Status(enum.IntEnum):
 
     Attributes:
         SUCCESS: 0, every implicit solve converged to round-off (or to
-            ``SolverOptions.tolerance``, where set); this says nothing about accuracy:
-            ``error_estimate`` does.
+            ``SolverOptions.tolerance``, where set; an explicit method has none) and no step
+            lost all accuracy (``INACCURATE``); how accurate the steps are, ``error_estimate``
+            says.
         NEWTON_MAX_ITERATIONS: 1, an iteration hit ``max_newton_iterations`` (the element
             equations may have no real solution).
         NONFINITE: 2, NaN or inf in the element unknowns.
