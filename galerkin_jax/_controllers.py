@@ -406,8 +406,8 @@ def embedded_error(H, q0, p0, W, h, increment, field=None, alpha=1.0):
     (degree + 1): an embedded estimate of order q from what the element already has, at the
     cost of one evaluation of Hamilton's field. A polynomial with jumps (GalerkinVI, whose
     momentum P has degree s - 1 and misses p0 and p1 [Tang, eqs. (2.26), (2.32)]) has its
-    defect taken on w~: GalerkinVI(1)'s constant P has the defect -h F_p(z1), the force itself,
-    of order one, and a ``PIDController`` took steps in proportion to the tolerance; w~'s P is
+    defect taken on w~: GalerkinVI(1)'s constant P itself has the defect -h F_p(z1), the force,
+    of order one (a controller's steps would shrink in proportion to the tolerance); w~'s P is
     the line from p0 to p1, whose defect at 1 is Stormer-Verlet's against its one-sided
     end, O(h^2) = O(h^m). A polynomial that matches Hamilton's field at the element's end (the
     Hermite cubic of compositions and splittings) has no defect there: its ``embedded_alpha``
@@ -416,7 +416,7 @@ def embedded_error(H, q0, p0, W, h, increment, field=None, alpha=1.0):
     where the solution's derivatives are, as the local error is. It ranks elements for the
     default ``error_estimate`` (those methods refuse a ``PIDController``); the local error's
     own elementary differentials may peak elsewhere where they vary little over a run
-    (Henon-Heiles, ``blanes_moan4``: the default 0.39 of the full estimate). The full a posteriori estimate
+    (``tests/test_splitting.py``). The full a posteriori estimate
     (``_defect.local_error``) has the method's own order (2k + 1 for cG(k)) and costs J + 1
     field evaluations and J products with its Jacobian.
 
