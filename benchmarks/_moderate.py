@@ -237,3 +237,27 @@ def pendulum_chain(n, angle=0.5, T=20.0, seed=0):
     description = (f"planar {n}-link pendulum (unit masses and lengths, g = 1), non-separable, at rest with angles "
                    f"uniform in [-{angle:g}, {angle:g}] (seed {seed}), H = {energy:.4f} above rest, span {T:g}")
     return System(f"Chain{n}", description, H, q0, p0, T, facts=dict(links=n, angle=angle, seed=seed, energy=energy))
+
+
+def learned(width=32, dim=2, scale=0.3, T=20.0, seed=0):
+    """A Hamiltonian as a network learns one: H(q, p) = |p|^2 / 2 + |q|^2 / 2 + scale N(q, p),
+    N a two-layer tanh network (``width`` units) on the joined state with weights drawn from
+    N(0, 1 / fan-in) (seed): non-separable (the network reads q and p together), smooth, with
+    an expensive field (two matrix products per gradient). The start: q0 = (1, 0, ...), p0 = 0."""
+    rng = np.random.default_rng(seed)
+    W1 = jnp.asarray(rng.normal(size=(width, 2 * dim)) / np.sqrt(2 * dim))
+    b1 = jnp.asarray(rng.normal(size=width) * 0.1)
+    w2 = jnp.asarray(rng.normal(size=width) / np.sqrt(width))
+
+    def H(q, p):
+        z = jnp.concatenate([q, p])
+        return 0.5 * p @ p + 0.5 * q @ q + scale * w2 @ jnp.tanh(W1 @ z + b1)
+
+    q0 = np.zeros(dim)
+    q0[0] = 1.0
+    p0 = np.zeros(dim)
+    energy = float(H(jnp.asarray(q0), jnp.asarray(p0)))
+    description = (f"a learned-network H on {dim} degrees of freedom (|p|^2/2 + |q|^2/2 + {scale:g} w2 tanh(W1 z + b1), "
+                   f"{width} units, seed {seed}), non-separable, from q0 = e1 at rest, H = {energy:.4f}, span {T:g}")
+    return System(f"Learned{dim}", description, H, q0, p0, T, facts=dict(width=width, scale=scale, seed=seed,
+                                                                          energy=energy))

@@ -1,12 +1,13 @@
 """Untuned moderate systems: galerkin_jax against diffrax and the integrators
 a user of each field would write, at a largest relative energy error of 1e-6, 1e-8 and 1e-10.
 
-    python -m benchmarks moderate [--quick] [--only LJ13 LJ55 Morse13 Morse55 Plummer32 Chain10]
+    python -m benchmarks moderate [--quick] [--only LJ13 LJ55 Morse13 Morse55 Plummer32 Chain10 Chain2 Learned2]
 
 The systems (``_moderate.py``, where each is described with its start and seed): Lennard-Jones
 and Morse (rho = 6) clusters of 13 and 55 atoms from their relaxed Mackay icosahedra with
 Maxwell-Boltzmann velocities at T* = 0.3; a softened Plummer sphere of 32 bodies in virial
-equilibrium; a planar 10-link pendulum (non-separable).
+equilibrium; a planar 10-link pendulum and the double pendulum (non-separable); a learned
+network H on two degrees of freedom (non-separable).
 
 The accuracy of a run is max |H(z_j) - H(z_0)| / |H(z_0)| over the states z_j at t = j T / 10,
 j = 1..10, the same for every solver: every run is cut into ten segments whose ends its steps
@@ -60,8 +61,11 @@ def system_list(quick):
     lj, morse, plummer, chain = ((systems.lennard_jones, "LJ"), (systems.morse, "Morse"), (systems.plummer, "Plummer"),
                                  (systems.pendulum_chain, "Chain"))
     chosen = ([(lj, 13, 5.0), (morse, 13, 5.0), (plummer, 16, 2.0), (chain, 5, 5.0)] if quick else [
-        (lj, 13, 50.0), (lj, 55, 10.0), (morse, 13, 50.0), (morse, 55, 10.0), (plummer, 32, 10.0), (chain, 10, 20.0)])
-    return {f"{name}{n}": functools.partial(f, n, T=T) for (f, name), n, T in chosen}
+        (lj, 13, 50.0), (lj, 55, 10.0), (morse, 13, 50.0), (morse, 55, 10.0), (plummer, 32, 10.0), (chain, 10, 20.0),
+        (chain, 2, 20.0)])
+    found = {f"{name}{n}": functools.partial(f, n, T=T) for (f, name), n, T in chosen}
+    found["Learned2"] = functools.partial(systems.learned, dim=2, T=5.0 if quick else 20.0)  # the network H
+    return found
 
 
 class Out(NamedTuple):

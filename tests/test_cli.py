@@ -250,7 +250,8 @@ SCENE_HEAD = "import jax.numpy as jnp\nH = lambda q, p: 0.5 * p @ p - 1 / jnp.sq
 @pytest.mark.parametrize(
     "values, message",
     [
-        ("q0, p0 = [1.0, float('nan')], [0.0, 1.0]", "q0 must be finite, got [ 1. nan]."),
+        ("q0, p0 = [1.0, float('nan')], [0.0, 1.0]",
+         "q0 must be finite, got 1 of 2 entries not finite, the first nan at index (1,)."),
         ("q0, p0 = [1.0, 0.0], [0.0, float('inf')]", "p0 must be finite"),
         ("q0, p0, h = [1.0, 0.0], [0.0, 1.0], -0.1", "h must be finite and > 0, got -0.1."),
         ("q0, p0, h = [1.0, 0.0], [0.0, 1.0], float('nan')", "h must be finite and > 0, got nan."),
