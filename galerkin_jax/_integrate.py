@@ -115,10 +115,10 @@ class Solution:
             failure the states are NaN; a run stopped by ``max_steps`` or ``dtmin`` (status
             MAX_STEPS, DTMIN) keeps the time and state where it stopped, its later save times NaN.
         p: the momenta at ``t``, likewise.
-        status: the run's int32 ``Status`` code: 0 where the run reached its end with finite
-            states, its solves converged (an explicit method has none) and no step lost all
-            accuracy (``Status.INACCURATE``). Status 0 promises no more than that: read
-            ``error_estimate`` for how accurate the steps are.
+        status: the run's int32 ``Status`` code, 0 when every implicit solve converged (an
+            explicit method, which has none: when it ran to its end with no step that lost all
+            accuracy, ``Status.INACCURATE``). Status 0 promises converged solves, not accurate
+            steps: read ``error_estimate`` for that.
         stats: the run's counts, a dict of arrays:
 
             - ``num_newton_iterations``: the iterations of the implicit solves, in total;

@@ -256,9 +256,12 @@ def peak_estimate(method, H_bound, peak):
 
 
 def estimated_status(method, estimate, status, relative):
-    """The run's status with its accuracy decided (``_solve.accuracy_status``) where it has an
-    estimate: ``estimate`` True or "full" and a method given a Hamiltonian (a Lagrangian's is NaN)."""
-    if estimate is False or not method.hamiltonian:
+    """The run's status with its accuracy decided (``_solve.accuracy_status``) where the method
+    computes its elements in closed form (``_explicit``: it has no solve whose failure the status
+    would report, and a step too long for it blows up) and the run has an estimate (``estimate``
+    True or "full"). An implicit method's status stays its solves' (a step of h omega = 1000 of
+    Gauss collocation converges and keeps H: its ``error_estimate`` says it follows no trajectory)."""
+    if estimate is False or not method.hamiltonian or not is_explicit(method):
         return status
     return accuracy_status(status, relative)
 

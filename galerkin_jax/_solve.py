@@ -92,9 +92,9 @@ class Status(enum.IntEnum):
 
     Attributes:
         SUCCESS: 0, every implicit solve converged to round-off (or to
-            ``SolverOptions.tolerance``, where set; an explicit method has none) and no step
-            lost all accuracy (``INACCURATE``); how accurate the steps are, ``error_estimate``
-            says.
+            ``SolverOptions.tolerance``, where set); an explicit method, which has none, ran to
+            its end with no step that lost all accuracy (``INACCURATE``). How accurate the steps
+            are, ``error_estimate`` says.
         NEWTON_MAX_ITERATIONS: 1, an iteration hit ``max_newton_iterations`` (the element
             equations may have no real solution).
         NONFINITE: 2, NaN or inf in the element unknowns.
@@ -111,10 +111,13 @@ class Status(enum.IntEnum):
             with ``error_estimate="full"``) is at least ``NO_ACCURACY`` (0.1) times the size
             ``max |z|`` of the state it starts from, or is not finite (``relative_error``,
             ``accuracy_status``). Unlike the failures above, the states, the estimate and
-            their derivatives are kept, as computed: look at them. Decided where a run has an estimate (not with
-            ``error_estimate=False``, nor for a method given a Lagrangian, whose estimate is
-            NaN), for fixed steps, controllers and sweeps alike, explicit methods (which have
-            no solve to fail) and implicit ones.
+            their derivatives are kept, as computed: look at them. Decided for a method that
+            computes its elements in closed form (a splitting, a composition of Störmer-Verlet,
+            ``Tao``: it has no solve to fail, and a step too long for it blows up) where the run
+            has an estimate (not with ``error_estimate=False``), for fixed steps, controllers
+            and sweeps alike. An implicit method's status stays its solves': at h omega = 1000
+            Gauss collocation converges and keeps H, and its ``error_estimate`` says that it
+            follows no trajectory.
     """
 
     SUCCESS = 0
@@ -159,8 +162,8 @@ MESSAGES = {
         "SolverOptions.tolerance, where set), except the steps counted in stats['num_accepted_stalled'], whose "
         "updates stopped shrinking with the residual below sqrt(eps) of the state (the floor of an "
         "ill-conditioned system); an explicit one (a Splitting, Stormer-Verlet and its compositions on a "
-        "separable H) has no solve to fail. Every estimated local error is below 0.1 of its state (else status "
-        "INACCURATE); see error_estimate for how accurate the steps are."
+        "separable H, Tao's map) has no solve to fail, and every estimated local error of its run is below 0.1 "
+        "of its state (else status INACCURATE); see error_estimate for how accurate the steps are."
     ),
     Status.NEWTON_MAX_ITERATIONS: (
         "An implicit solve did not converge within max_newton_iterations; reduce h or raise the "
@@ -186,8 +189,10 @@ MESSAGES = {
         "of your own there, or use fixed steps or a PIDController. A TimeTransform(s=...) of your own "
         "must stay positive and finite at every state the orbit reaches: look where your s vanishes, changes sign or "
         "divides by zero."
-    ),    Status.INACCURATE: (
-        "The run went to its end, but its error estimate says it has lost all accuracy: an element's estimated "
+    ),
+    Status.INACCURATE: (
+        "The explicit method's run went to its end, but its error estimate says it has lost all accuracy: an "
+        "element's estimated "
         "local error is at least 0.1 of its state's size, or not finite (error_estimate holds the largest; the "
         "states are as computed). The step is beyond the method's stability or accuracy for this problem: "
         "reduce h, or use a PIDController with a method that admits one (CG, DG, GalerkinVI)."
