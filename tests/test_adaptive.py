@@ -591,7 +591,7 @@ def test_the_embedded_estimate_against_the_full_one(scene):
         def one(z0, z1):
             W = helpers.cg_element(2, Hs, z0, h)[1]
             q, p = jnp.split(z0, 2)
-            return jnp.max(jnp.abs(embedded_error(Hs, q, p, W, h))), local_error(Hs, q, p, W, z1 - z0, h)
+            return jnp.max(jnp.abs(embedded_error(Hs, q, p, W, h, z1 - z0))), local_error(Hs, q, p, W, z1 - z0, h)
 
         return jax.vmap(one)(z[:-1], z[1:])
 
@@ -609,9 +609,9 @@ def test_the_loop_carries_only_the_parts_a_run_asks_for():
     """The loop's carry (``_adaptive.Carry``) is made of named parts, each None where the run
     does not ask for it: a PID run with no outputs carries no saves, dense output, events,
     checkpoints, diagnostics or peak elements (``estimate=False``), and its leaves are the node,
-    the rule's state, the status, the counts and the record (measured: 26 leaves for CG(3)); save
-    times, two events and dense output add their buffers of the asked sizes (measured: 45
-    leaves). Traced by ``jax.eval_shape``: nothing compiles."""
+    the rule's state, the status, the counts and the record (measured: 27 leaves for CG(3), the
+    record's largest relative error among them); save times, two events and dense output add
+    their buffers of the asked sizes (measured: 46 leaves). Traced by ``jax.eval_shape``: nothing compiles."""
     from galerkin_jax import _adaptive
     from galerkin_jax._march import solver_options
 
@@ -627,12 +627,12 @@ def test_the_loop_carries_only_the_parts_a_run_asks_for():
     assert all(part is None for part in (plain.saves, plain.dense, plain.events, plain.checkpoints, plain.acc,
                                          plain.record.peak, plain.node.memo))
     assert set(plain.control.memory) == {"err1", "err2"} and plain.counts.steps.dtype == jnp.int32
-    assert len(jax.tree.leaves(plain)) == 26
+    assert len(jax.tree.leaves(plain)) == 27
     full = carry(ts=ts, events=events, dense=True)
     assert full.saves.states.shape == (4, 4) and full.saves.elements.shape == (4,)
     assert [z.shape for z in full.events.z] == [(5, 4), (3, 4)] and full.events.count.shape == (2,)
     assert full.dense.node_z.shape == (65, 4) and full.dense.W.shape[:1] == (64,)
-    assert len(jax.tree.leaves(full)) == 45
+    assert len(jax.tree.leaves(full)) == 46
 
 
 @pytest.mark.parametrize("rule, ratio", [(gj.trapezoid(), 10.9), (gj.midpoint(), 27.0)])
