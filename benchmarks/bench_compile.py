@@ -1,6 +1,6 @@
 """Time to the first answer: where a run's first call goes, beside diffrax's equivalent.
 
-    python -m benchmarks compile [--only kepler fput] [--kinds KIND ...] [--name compile]
+    python -m benchmarks compile [--only kepler fput explicit] [--kinds KIND ...] [--name compile]
 
 For every public entry point and run kind, on Kepler (d = 2, cG(6) + Gauss 6, one orbit) and on
 the beta-FPUT chain (N = 64, cG(4) + Gauss 4), the first call of a fresh function in one
@@ -11,7 +11,8 @@ program's size: StableHLO operations of the lowered module (``lowered.as_text()`
 ``tests/test_program.py`` budgets) and the kernels (fusions) XLA compiled, which set the
 compile time (about 4-8 ms each on this CPU). diffrax's equivalent runs in the same process,
 with the same state and span: Dopri8 with a constant step or with its PID controller (and
-Tsit5 for the forward run kinds). Results: ``results/compile.json``. (The CLI and the README's
+Tsit5 for the forward run kinds). Part ``explicit``: methods in closed form on Kepler beside the
+same steps written by hand (``explicit``). Results: ``results/compile.json``. (The CLI and the README's
 tour with the compilation cache were measured once by parts ``cli`` and ``tour``, since removed:
 notes/README.md.)
 """
@@ -44,6 +45,26 @@ def program_size(fn, *args):
     return ops, kernels
 
 
+# the parts of a program (``jax.named_scope`` in the library: the root finder's phases, the
+# element, its predictor, the error estimate, a step rule and the writers); a kernel counts in
+# the innermost part its operation lies in, and in "loop" where it lies in none
+PARTS = ("start", "fixed_point", "settle", "newton", "krylov", "element", "predictor", "estimate", "step_rule",
+         "save_at", "events", "dense", "checkpoints")
+
+
+def kernels_by_part(fn, *args):
+    """``{part: kernels}`` of ``jax.jit(fn)`` at ``args`` (``PARTS``), by the operation each
+    fusion's result comes from (XLA's ``op_name`` metadata)."""
+    counts = dict.fromkeys(PARTS + ("loop",), 0)
+    for line in jax.jit(fn).lower(*args).compile().as_text().splitlines():
+        if " fusion(" not in line:
+            continue
+        name = re.search(r'op_name="([^"]+)"', line)
+        inner = [p for p in (name.group(1).split("/") if name else ()) if p in PARTS]
+        counts[inner[-1] if inner else "loop"] += 1
+    return {part: n for part, n in counts.items() if n}
+
+
 def first_call(make, sized=True):
     """The first call of a fresh program (``make()`` builds the function and its arguments):
     ``dict(total, trace_and_lower, compile, run, stablehlo_ops, kernels)`` in seconds; without
@@ -58,7 +79,7 @@ def first_call(make, sized=True):
     run = best_time(fn, *args, repeat=3, min_s=0.0)
     ops, kernels = program_size(fn, *args) if sized else (None, None)
     return dict(total=total, trace_and_lower=max(total - compile_s - run, 0.0), compile=compile_s, run=run,
-                stablehlo_ops=ops, kernels=kernels)
+                stablehlo_ops=ops, kernels=kernels, parts=kernels_by_part(fn, *args) if sized else None)
 
 
 PROBLEMS = {  # (scene, span, method, tolerance)
@@ -149,6 +170,47 @@ def peers(problem):
     }
 
 
+def explicit():
+    """``{kind: {solver: make}}``: methods computed in closed form (``_explicit``: a separable H)
+    beside the same steps written by hand in plain JAX (``_peers.leapfrog``: velocity Verlet,
+    composed for the triple jump), on Kepler, 1000 fixed steps over one orbit. The library's
+    runs return the whole ``Solution`` (so the error estimate is compiled where it is on)."""
+    from _peers import leapfrog
+
+    scene = scenes.kepler(0.6)
+    H, q0, p0, T, n = scene.H, jnp.asarray(scene.q0), jnp.asarray(scene.p0), 2 * np.pi, 1000
+    z0 = jnp.concatenate([q0, p0])
+    verlet = gj.GalerkinVI(1, gj.trapezoid())
+    triple = gj.Composition(verlet, "yoshida4").coefficients
+
+    def run(method, **kw):
+        return lambda: (lambda q0, p0: gj.integrate(H, q0, p0, method=method, h=T / n, n_steps=n, **kw), (q0, p0))
+
+    by_hand = lambda weights: lambda: (jax.jit(leapfrog(H, T, n, weights)), (z0,))
+    return {
+        "Verlet": {"galerkin_jax": run(verlet), "by hand": by_hand((1.0,))},
+        "Verlet, no estimate": {"galerkin_jax": run(verlet, error_estimate=False), "by hand": by_hand((1.0,))},
+        "triple jump": {"galerkin_jax": run(gj.Composition(verlet, "yoshida4")), "by hand": by_hand(triple)},
+        "kahan_li8": {"galerkin_jax": run(gj.Composition(verlet, "kahan_li8")), "by hand": by_hand(triple)},
+        "blanes_moan_rkn6": {"galerkin_jax": run(gj.Splitting("blanes_moan_rkn6")), "by hand": by_hand(triple)},
+    }
+
+
+def explicit_part(kinds=None):
+    """The ``explicit()`` kinds: the first call of each, and the library's compile (trace, lower
+    and XLA) less and over the hand-written one's (``extra_s``, ``ratio``)."""
+    rows = {}
+    for kind, makes in explicit().items():
+        if kinds and kind not in kinds:
+            continue
+        row = {solver: first_call(make) for solver, make in makes.items()}
+        mine, theirs = ((row[k]["trace_and_lower"] + row[k]["compile"]) for k in ("galerkin_jax", "by hand"))
+        rows[kind] = row | {"extra_s": mine - theirs, "ratio": mine / theirs}
+        show(f"explicit {kind}", row["galerkin_jax"] | {"by hand compile": theirs, "extra_s": mine - theirs,
+                                                        "ratio": mine / theirs})
+    return rows
+
+
 EAGER = ("suggest_step_size",)  # pilot runs chosen in Python: several programs, no single one to lower
 
 
@@ -174,11 +236,12 @@ def problem_part(name, problem, kinds=None):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--only", nargs="+", choices=list(PROBLEMS), default=list(PROBLEMS))
+    parser.add_argument("--only", nargs="+", choices=[*PROBLEMS, "explicit"], default=[*PROBLEMS, "explicit"])
     parser.add_argument("--kinds", nargs="*", help="run kinds to measure (default: all), e.g. 'integrate PID'")
     parser.add_argument("--name", default="compile")
     options = parser.parse_args()
-    write(options.name, {name: problem_part(name, PROBLEMS[name](), options.kinds) for name in options.only})
+    write(options.name, {name: explicit_part(options.kinds) if name == "explicit"
+                         else problem_part(name, PROBLEMS[name](), options.kinds) for name in options.only})
 
 
 if __name__ == "__main__":

@@ -37,9 +37,9 @@ from ._controllers import (PIDController, TimeTransform, embedded_error, event_v
                            user_args)
 from ._defect import symplectic_field
 from ._explicit import is_explicit
-from ._march import (bind_args, compensated_add, continued, element_residual, embedded_alpha, estimated_status,
-                     input_status, peak_estimate, peak_start, peak_update, state_scale)
-from ._solve import Status, initial_matrix, relative_error, solve
+from ._march import (bind_args, compensated_add, continued, element, embedded_alpha, estimated_status, input_status,
+                     peak_estimate, peak_start, peak_update, state_scale)
+from ._solve import Status, initial_matrix, relative_error
 
 _LANDING = 8  # shortened attempts of a time-transformed run's last element (Newton converges in 2-3)
 
@@ -235,7 +235,7 @@ class Carry(NamedTuple):
 
 class Attempt(NamedTuple):
     """One attempt at an element (``_attempt``): from the node ``z`` = (q, p) at ``t``, of length
-    ``h`` (``last``: the element meant to end the run), its root ``Z``, end ``z1`` (``comp``),
+    ``h`` (``last``: the element meant to end the run), its root ``Z``, increment ``dz``, end ``z1`` (``comp``),
     polynomial ``W``, whether it was ``solved`` and its ``status``, the embedded estimate (or
     None), the root finder's ``matrix`` and counts, the explicit ``memo``, and ``t_b``, where
     the element ends (the step rule's, ``Verdict``; None before it)."""
@@ -247,6 +247,7 @@ class Attempt(NamedTuple):
     h: jax.Array
     last: jax.Array
     Z: jax.Array
+    dz: jax.Array
     z1: jax.Array
     comp: jax.Array
     W: jax.Array
@@ -287,6 +288,7 @@ def _pid_rule(controller, order, tiny, t1):
     solved step of h <= dtmin whatever its error. Every attempt not accepted counts as rejected,
     the last one of a run ended by DTMIN included."""
 
+    @jax.named_scope("step_rule")
     def rule(c, step):
         memory = c.control.memory
         err = jnp.where(step.solved, scaled_error(step.embedded, step.z, step.z1, controller), jnp.inf)
@@ -313,6 +315,7 @@ def _transform_rule(s, clock, view, tiny, t1):
     attempts not accepted (the shortened ones before the landing, a failed one) count as
     rejected."""
 
+    @jax.named_scope("step_rule")
     def rule(c, step):
         z1, h = step.z1, step.h
         t_b = z1[clock]
@@ -337,6 +340,7 @@ def _constant_rule(t0, h, t1):
     steps, whose rounding would put t1 a sliver beyond the last element), the last one (by its
     index, ``element_count``, in ``_attempt``) shortened to land on t1."""
 
+    @jax.named_scope("step_rule")
     def rule(c, step):
         return Verdict(accept=step.solved, finished=step.solved & step.last, h_next=c.control.h, status=step.status,
                        t_b=jnp.where(step.last, t1, t0 + (c.counts.steps + 1) * h), rejected=jnp.zeros((), bool),
@@ -478,7 +482,7 @@ def _initial_carry(loop, z0, t0, h0, guess, acc0, memory, memo):
 @dataclasses.dataclass(frozen=True)
 class _Loop:
     """What stays as it is while the loop runs (``run`` builds it): the problem (``method``, the
-    unbound ``H``, ``H_bound`` and its element residual ``fn``, ``args``; ``m``: the size of
+    unbound ``H``, ``H_bound``, ``args``; ``m``: the size of
     its element polynomial), the root finder's ``options``, the step ``rule`` (``pid``: a
     ``PIDController``'s; ``count``: a constant h's elements, else None), ``explicit``: the
     elements in closed form (``_explicit``), the ``clock`` and the user's ``view`` of a state,
@@ -488,7 +492,6 @@ class _Loop:
     method: object
     H: object
     H_bound: object
-    fn: object
     args: object
     m: int
     options: object
@@ -532,23 +535,19 @@ def _attempt(loop, c, active):
     else:
         last = t + c.control.h * (1 + 4 * jnp.finfo(z.dtype).eps) >= loop.t1
     h = jnp.where(last & (loop.clock is None), loop.t1 - t, c.control.h)
-    memo = None
     if loop.explicit:
-        Z, dz, memo = method.explicit(H_bound, q, p, h, node.memo)
-        dz = jnp.concatenate(dz)
-        z1, comp = z + dz, node.comp
-        matrix, iterations, trips, lenient = c.control.matrix, 0, 0, 0
-        status = jnp.int32(Status.SUCCESS)
+        predicted = constant = None
     else:
         constant = method.initial_guess(q, p)
         previous = (*jnp.split(node.z_prev, 2), node.Z_prev)
         predicted = jnp.where(c.counts.steps > 0, continued(method, q, p, previous, h / node.h_prev), constant)
-        Z, matrix, iterations, status, trips, lenient = solve(
-            loop.fn, (method, q, p, h, loop.args), predicted, constant, c.control.matrix, state_scale(z), ~active,
-            c.counts.steps == 0, loop.options)
-        dz = jnp.concatenate(method.increment(H_bound, q, p, Z, h))
-        z1, comp = compensated_add(z, dz, node.comp)
-    W = method.polynomial(H_bound, q, p, Z, h)
+    Z, dz, memo, matrix, iterations, status, trips, lenient = element(
+        method, loop.H, q, p, h, loop.args, loop.options, predicted=predicted, constant=constant,
+        matrix=c.control.matrix, scale=state_scale(z), skip=~active, first=c.counts.steps == 0, memo=node.memo,
+        closed_form=loop.explicit)
+    # an explicit element's state is summed plainly (``_march.explicit_start``)
+    z1, comp = (z + dz, node.comp) if loop.explicit else compensated_add(z, dz, node.comp)
+    W = method.polynomial_with(H_bound, q, p, Z, h, dz)
     solved = (status == Status.SUCCESS) & jnp.all(jnp.isfinite(z1))
     status = jnp.where((status == Status.SUCCESS) & ~solved, Status.NONFINITE, status)
     # the embedded estimate, shared by the step rule and the run's estimate (``peak_update``)
@@ -557,7 +556,7 @@ def _attempt(loop, c, active):
     field = method.explicit_field(H_bound, *jnp.split(z1, 2), memo) if loop.explicit and not loop.pid else None
     embedded = (embedded_error(H_bound, q, p, W, h, dz, field, embedded_alpha(method))
                 if loop.pid or loop.estimate is True else None)
-    return Attempt(q=q, p=p, z=z, t=t, h=h, last=last, Z=Z, z1=z1, comp=comp, W=W, solved=solved, status=status,
+    return Attempt(q=q, p=p, z=z, t=t, h=h, last=last, Z=Z, dz=dz, z1=z1, comp=comp, W=W, solved=solved, status=status,
                    embedded=embedded, matrix=matrix, iterations=iterations, trips=trips, lenient=lenient, memo=memo)
 
 
@@ -568,6 +567,7 @@ def _control(c, step, verdict, active):
                    memory=jax.tree.map(keep, verdict.memory, c.control.memory))
 
 
+@jax.named_scope("dense")
 def _refined(loop, c, step, accept, samples):
     """Between the nodes, the element's polynomial refined to the nodes' accuracy
     (``_output.refined``) where a save time or an event lies in the accepted element (every
@@ -587,6 +587,7 @@ def _refined(loop, c, step, accept, samples):
     return jax.lax.cond(accept & wanted, refine, _output.padded, step.W)
 
 
+@jax.named_scope("events")
 def _events(loop, c, step, accept, samples, W, end):
     """The events located in the accepted element (``_events_update``) and where a terminal one
     ended the run: ``(events, end, stop)``, ``end`` the node the element ends at (where a
@@ -604,6 +605,7 @@ def _events(loop, c, step, accept, samples, W, end):
     return events, jax.tree.map(lambda a, b: jnp.where(hit, a, b), stop, end), (hit, at)
 
 
+@jax.named_scope("save_at")
 def _saves(loop, c, step, accept, end, W):
     """The save times in the accepted element written (``_output.fill_saves``); a rejected step
     writes nothing: its end time is -inf."""
@@ -627,6 +629,7 @@ def _dense(loop, c, n, end, W, stop):
     return Dense(node_t, node_z, dense.W.at[n].set(W, mode="drop"))
 
 
+@jax.named_scope("estimate")
 def _local_error(loop, c, step, accept):
     """``(local, peak)``: with ``estimate="full"`` the element's local error (``local_error``);
     with True the ``peak`` elements updated by its embedded estimate (``peak_update``)."""
@@ -636,10 +639,11 @@ def _local_error(loop, c, step, accept):
         local = jax.lax.stop_gradient(loop.method.local_error(bind_args(loop.H, frozen[4]), *frozen[:4]))
     elif loop.estimate:
         size = jax.lax.stop_gradient(jnp.max(jnp.abs(step.embedded)))
-        peak = peak_update(peak, size, step.q, step.p, step.Z, step.h, accept)
+        peak = peak_update(peak, size, step.q, step.p, step.Z, step.h, step.dz, accept)
     return local, peak
 
 
+@jax.named_scope("checkpoints")
 def _checkpoints(loop, c, step, accept, end, acc):
     """The accepted node whose index is a multiple of ``every`` (z, t and the new ``acc``), and the
     element's root (start z, Z, t and acc) in row n mod every."""
@@ -731,7 +735,6 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
         ``record`` (the accepted steps, the estimate), and the saves, the dense output, the
         events (with each crossing's element and place) and the checkpoints where asked.
     """
-    fn = element_residual(H, options.solver.sweep_dimension)
     H_bound = bind_args(H, args)
     view = lambda z: _output.user_view(z, clock)
     z0 = jnp.concatenate([q0, p0])
@@ -758,7 +761,7 @@ def run(method, H, q0, p0, t0, t1, h0, args, controller, *, options, max_steps, 
     # the closed form where the method has one for H (``_explicit``); a time-transformed run
     # solves K = s (H + p_t), whose structure is not H's: it iterates
     explicit = is_explicit(method) and clock is None
-    loop = _Loop(method=method, H=H, H_bound=H_bound, fn=fn, args=args, m=m, options=options, rule=rule, pid=pid,
+    loop = _Loop(method=method, H=H, H_bound=H_bound, args=args, m=m, options=options, rule=rule, pid=pid,
                  count=count, explicit=explicit, clock=clock, view=view, t1=t1, max_steps=max_steps, ts=ts,
                  events=events, gs=gs, dense=dense, estimate=estimate, observe=observe, every=every)
     memo = method.explicit_start(H_bound, q0, p0) if explicit else None

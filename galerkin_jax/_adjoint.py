@@ -45,8 +45,8 @@ import jax.numpy as jnp
 from . import _adaptive, _output
 from ._controllers import event_value, symbolic_zero as _symbolic_zero, user_args
 from ._explicit import is_explicit
-from ._march import bind_args, continued, element_residual, state_scale
-from ._solve import Options, Status, implicit, initial_matrix, keeps_state, solve
+from ._march import bind_args, continued, element, element_residual, state_scale
+from ._solve import Options, Status, implicit, initial_matrix, keeps_state
 
 # the elements whose roots (z_n, t_n, Z_n) a gradient keeps (``Spec.stretch``), at most so many and
 # so many bytes of them: a run that fits is not solved again
@@ -354,10 +354,12 @@ def _element(spec, fn, theta, z, h, Z):
     H_bound = bind_args(fn, args)
     if explicit_here(method, spec):  # the closed form, differentiated as it is (``_explicit``)
         Z, dz, _ = method.explicit(H_bound, q, p, h, method.explicit_start(H_bound, q, p))
-        return z + jnp.concatenate(dz), method.polynomial(H_bound, q, p, Z, h)
-    residual = element_residual(fn, spec.options.solver.sweep_dimension)
-    Z = implicit(residual, spec.options.solver.dense_limit, (method, q, p, h, args), Z, jnp.ones((), bool))
-    return z + jnp.concatenate(method.increment(H_bound, q, p, Z, h)), method.polynomial(H_bound, q, p, Z, h)
+    else:
+        residual = element_residual(fn, spec.options.solver.sweep_dimension)
+        Z = implicit(residual, spec.options.solver.dense_limit, (method, q, p, h, args), Z, jnp.ones((), bool))
+        dz = method.increment(H_bound, q, p, Z, h)
+    dz = jnp.concatenate(dz)
+    return z + dz, method.polynomial_with(H_bound, q, p, Z, h, dz)
 
 
 def explicit_here(method, spec):
@@ -369,20 +371,17 @@ def explicit_here(method, spec):
 def _resolve(fn, theta, z, h, previous, matrix, options, explicit=False):
     """The root of the element of length h from z, found again from the previous element's
     polynomial continued (``previous = (z, Z, h, have)``; the constant state where not
-    ``have``), ``matrix`` carried on. Returns ``(Z, matrix, converged)``."""
+    ``have``), ``matrix`` carried on (``_march.element``). Returns ``(Z, matrix, converged)``."""
     method, args = theta
     q, p = jnp.split(z, 2)
-    if explicit:  # the closed form (``explicit_here``), without iteration
-        H_bound = bind_args(fn, args)
-        Z, dz, _ = method.explicit(H_bound, q, p, h, method.explicit_start(H_bound, q, p))
-        return jax.lax.stop_gradient(Z), matrix, jnp.all(jnp.isfinite(dz[0])) & jnp.all(jnp.isfinite(dz[1]))
-    constant = method.initial_guess(q, p)
     z_prev, Z_prev, h_prev, have = previous
-    guess = jnp.where(have, continued(method, q, p, (*jnp.split(z_prev, 2), Z_prev), h / h_prev), constant)
-    residual = element_residual(fn, options.solver.sweep_dimension)
-    Z, matrix, _, status, _, _ = solve(residual, (method, q, p, h, args), guess, constant, matrix, state_scale(z),
-                                       jnp.zeros((), bool), ~have, options)
-    return jax.lax.stop_gradient(Z), matrix, status == Status.SUCCESS
+    guess = constant = None
+    if not explicit:  # the closed form (``explicit_here``) takes no guess
+        constant = method.initial_guess(q, p)
+        guess = jnp.where(have, continued(method, q, p, (*jnp.split(z_prev, 2), Z_prev), h / h_prev), constant)
+    e = element(method, fn, q, p, h, args, options, predicted=guess, constant=constant, matrix=matrix,
+                scale=state_scale(z), skip=jnp.zeros((), bool), first=~have, closed_form=explicit)
+    return jax.lax.stop_gradient(e.Z), e.matrix, e.status == Status.SUCCESS
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))

@@ -13,7 +13,7 @@ import numpy as np
 import jax.numpy as jnp
 import dataclasses
 
-from ._defect import hamilton_field
+from ._defect import hamilton_field, local_error
 from ._method import AbstractMethod
 from ._pytree import pytree_dataclass
 from ._quadrature import QuadratureRule
@@ -72,44 +72,65 @@ _HERMITE = np.stack([np.polynomial.legendre.poly2leg(np.polynomial.Polynomial(c)
     np.polynomial.Polynomial([0.5, 0.5])).coef) for c in ([0, 1, -2, 1], [0, 0, 3, -2], [0, 0, -1, 1])], axis=1)
 
 
-def hermite_polynomial(H, q0, p0, dq, dp, h):
-    """The Hermite cubic through (z0, h f(z0)) and (z1, h f(z1)), z1 = z0 + (dq, dp), f
-    Hamilton's field: Legendre coefficients, shape ``(4, 2d)`` (the element polynomial of a
-    method whose stages are not polynomials: compositions, splittings)."""
-    field = hamilton_field(H)
-    columns = jnp.stack([h * field(q0, p0), jnp.concatenate([dq, dp]), h * field(q0 + dq, p0 + dp)])
+def hermite_polynomial(H, q0, p0, increment, h, fields=None):
+    """The Hermite cubic through (z0, h f(z0)) and (z1, h f(z1)), z1 = z0 + increment, f
+    Hamilton's field (evaluated at both ends, or ``fields = (f(z0), f(z1))`` where the run has
+    them): Legendre coefficients, shape ``(4, 2d)`` (the element polynomial of a method whose
+    stages are not polynomials: compositions, splittings)."""
+    if fields is None:
+        field = hamilton_field(H)
+        dq, dp = jnp.split(increment, 2)
+        fields = field(q0, p0), field(q0 + dq, p0 + dp)
+    columns = jnp.stack([h * fields[0], increment, h * fields[1]])
     return jnp.asarray(_HERMITE, q0.dtype) @ columns
+
+
+def hermite_error(H, q0, p0, increment, h):
+    """The local error (``_defect.local_error``) of an element whose polynomial is the Hermite
+    cubic of its ends (``hermite_polynomial``)."""
+    return local_error(H, q0, p0, hermite_polynomial(H, q0, p0, increment, h), increment, h)
 
 
 class ExplicitMap(AbstractMethod):
     """A method whose element is an explicit map z0 -> z1, computed from a fresh start
     (``explicit(H, q0, p0, h, explicit_start(H, q0, p0))``): a splitting, Tao's map. Its
-    unknowns are the increments Z = (dq | dp), the root of R(Z) = Z - (z1 - z0), which a run
-    whose elements the solver iterates (``save_at``, events, a sweep) finds in one update; its
-    element polynomial is the Hermite cubic through the end states (``hermite_polynomial``),
-    which matches Hamilton's field at both ends, so the embedded estimate reads its defect
-    inside, at alpha = 1/4 (``embedded_error``)."""
+    unknowns Z begin with the increments (dq | dp), and hold ``unknowns - 2`` more blocks of d
+    numbers the map hands its error estimate (Tao's copies' distance); Z is the root of
+    R(Z) = Z - explicit(...)[0], which a run whose elements the solver iterates (``save_at``,
+    events, a sweep) finds in one update. Its element polynomial is the Hermite cubic through
+    the end states (``hermite_polynomial``), which matches Hamilton's field at both ends, so the
+    embedded estimate reads its defect inside, at alpha = 1/4 (``embedded_error``)."""
 
     fixed_point = True  # dR/dZ = I
     partition_axis = None
     embedded_alpha = 0.25
     settle = 0
     hamiltonian = True
+    unknowns = 2  # blocks of d numbers in Z
 
     def initial_guess(self, q0, p0, previous=None, ratio=None):
         if previous is not None and ratio is None:
-            return previous[2]  # the previous increments
-        return jnp.zeros(2 * q0.shape[0], q0.dtype)
+            return previous[2]  # the previous element's unknowns
+        return jnp.zeros(self.unknowns * q0.shape[0], q0.dtype)
 
     def residual(self, H, q0, p0, Z, h, part=None):
-        """Z less the increments the map computes (its root: those increments)."""
+        """Z less the unknowns the map computes (its root: those)."""
         return Z - self.explicit(H, q0, p0, h, self.explicit_start(H, q0, p0))[0]
 
     def increment(self, H, q0, p0, Z, h):
-        return jnp.split(Z, 2)
+        return jnp.split(Z[:2 * q0.shape[0]], 2)
 
     def polynomial(self, H, q0, p0, Z, h):
-        return hermite_polynomial(H, q0, p0, *self.increment(H, q0, p0, Z, h), h)
+        return hermite_polynomial(H, q0, p0, Z[:2 * q0.shape[0]], h)
+
+    def polynomial_with(self, H, q0, p0, Z, h, increment, fields=None):
+        return hermite_polynomial(H, q0, p0, increment, h, fields)
+
+    def local_error(self, H, q0, p0, Z, h):
+        return self.local_error_with(H, q0, p0, Z, h, Z[:2 * q0.shape[0]])
+
+    def local_error_with(self, H, q0, p0, Z, h, increment):
+        return hermite_error(H, q0, p0, increment, h)
 
     def explicit_form(self, structure):
         """Itself: its element is explicit."""
@@ -277,9 +298,14 @@ class Composition(AbstractMethod):
 
     def polynomial(self, H, q0, p0, Z, h):
         """The Hermite cubic through the end states (``hermite_polynomial``)."""
+        return self.polynomial_with(H, q0, p0, Z, h, jnp.concatenate(self.increment(H, q0, p0, Z, h)))
+
+    def polynomial_with(self, H, q0, p0, Z, h, increment, fields=None):
+        """``polynomial`` from the element's increment (and the field at its ends where given):
+        the stages are not computed again."""
         if self.lifted is not None:
-            return self.lifted.polynomial(H, q0, p0, Z, h)
-        return hermite_polynomial(H, q0, p0, *self.increment(H, q0, p0, Z, h), h)
+            return self.lifted.polynomial_with(H, q0, p0, Z, h, increment, fields)
+        return hermite_polynomial(H, q0, p0, increment, h, fields)
 
     @property
     def explicit(self):
@@ -301,9 +327,13 @@ class Composition(AbstractMethod):
         return explicit
 
     def local_error(self, H, q0, p0, Z, h):
+        return self.local_error_with(H, q0, p0, Z, h, jnp.concatenate(self.increment(H, q0, p0, Z, h)))
+
+    def local_error_with(self, H, q0, p0, Z, h, increment):
+        """``local_error`` from the element's increment: the stages are not computed again."""
         if self.lifted is not None:
-            return self.lifted.local_error(H, q0, p0, Z, h)
-        return super().local_error(H, q0, p0, Z, h)
+            return self.lifted.local_error_with(H, q0, p0, Z, h, increment)
+        return hermite_error(H, q0, p0, increment, h)
 
     def explicit_start(self, H, q0, p0):
         if self.lifted is not None:

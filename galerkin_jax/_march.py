@@ -16,6 +16,7 @@ import dataclasses
 import functools
 import inspect
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -141,21 +142,56 @@ def short_of_t1(status, t_end, t1):
     return jnp.where((status == Status.SUCCESS) & (t_end != t1), Status.MAX_STEPS, status).astype(jnp.int32)
 
 
+class Element(NamedTuple):
+    """One element's result (``element``): its unknowns ``Z``, increment ``dz = z1 - z0`` (shape
+    ``(2d,)``), the memo it hands the next element (``_explicit``; None for an iterated one), the
+    root finder's ``matrix`` and counts, and its ``status`` (the solve's; for an element in closed
+    form NONFINITE where its end is not finite)."""
+
+    Z: jax.Array
+    dz: jax.Array
+    memo: object
+    matrix: object
+    iterations: jax.Array
+    status: jax.Array
+    trips: jax.Array
+    lenient: jax.Array
+
+
+@jax.named_scope("element")
+def element(method, H, q, p, h, args, options, *, predicted=None, constant=None, matrix=None, scale=None,
+            skip=False, first=True, memo=None, closed_form=None):
+    """The element of step h from (q, p), the one computation every run, ``step`` and every
+    derivative's element found again share. Where the method has a closed form (``_explicit``;
+    ``closed_form`` False: not for this H, a time-transformed run's K) it is computed from
+    ``memo`` (what the previous element handed on; a fresh start where None), without
+    iteration; else the root finder (``_solve.solve``) solves its equations from
+    ``predicted``, falling back on ``constant`` (both the method's constant guess where None),
+    with ``matrix`` (a fresh one where None) and the round-off floor of ``scale`` (the state's
+    where None), skipping where ``skip``; ``first``: its predictor has no history."""
+    H_bound = bind_args(H, args)
+    if is_explicit(method) if closed_form is None else closed_form:
+        Z, (dq, dp), memo = method.explicit(H_bound, q, p, h, method.explicit_start(H_bound, q, p) if memo is None else memo)
+        status = jnp.where(finite(q + dq, p + dp), Status.SUCCESS, Status.NONFINITE).astype(jnp.int32)
+        zero = jnp.zeros((), jnp.int32)
+        return Element(Z, jnp.concatenate([dq, dp]), memo, matrix, zero, status, zero, zero)
+    constant = method.initial_guess(q, p) if constant is None else constant
+    predicted = constant if predicted is None else predicted
+    matrix = initial_matrix(predicted, options) if matrix is None else matrix
+    scale = state_scale(jnp.concatenate([q, p])) if scale is None else scale
+    Z, matrix, iterations, status, trips, lenient = solve(
+        element_residual(H, options.solver.sweep_dimension), (method, q, p, h, args), predicted, constant, matrix,
+        scale, skip, first, options)
+    dz = jnp.concatenate(method.increment(H_bound, q, p, Z, h))
+    return Element(Z, dz, None, matrix, iterations, status, trips, lenient)
+
+
 def solve_element(method, H, q, p, h, args, options):
-    """One element from the constant predictor, without history: ``(q1, p1, Z, iterations, status)``."""
-    if is_explicit(method):
-        H_bound = bind_args(H, args)
-        Z, (dq, dp), _ = method.explicit(H_bound, q, p, h, method.explicit_start(H_bound, q, p))
-        q1, p1 = q + dq, p + dp
-        ok = jnp.all(jnp.isfinite(q1)) & jnp.all(jnp.isfinite(p1))
-        return q1, p1, Z, jnp.int32(0), jnp.where(ok, Status.SUCCESS, Status.NONFINITE).astype(jnp.int32)
-    fn, params = element_residual(H, options.solver.sweep_dimension), (method, q, p, h, args)
-    guess = method.initial_guess(q, p)
-    matrix = initial_matrix(guess, options)
-    scale = state_scale(jnp.concatenate([q, p]))
-    Z, _, iterations, status, _, _ = solve(fn, params, guess, guess, matrix, scale, False, True, options)
-    dq, dp = method.increment(bind_args(H, args), q, p, Z, h)
-    return q + dq, p + dp, Z, iterations, status
+    """One element from the constant predictor, without history (``element``): ``(q1, p1, Z,
+    iterations, status)``."""
+    e = element(method, H, q, p, h, args, options)
+    dq, dp = jnp.split(e.dz, 2)
+    return q + dq, p + dp, e.Z, e.iterations, e.status
 
 
 def compensated_add(x, dx, c):
@@ -174,6 +210,7 @@ def continued(method, q, p, previous, ratio):
     return method.initial_guess(q, p, previous, ratio=ratio)
 
 
+@jax.named_scope("predictor")
 def predictor(method, q, p, previous, correction):
     """The previous element's polynomial continued one element ahead, plus the extrapolated
     error of that continuation (``miss_correction``). Returns ``(Z_pred, Z_continued, Z_constant)``."""
@@ -188,6 +225,7 @@ def _extrapolated(misses, m):
     return sum((-1.0) ** j * math.comb(m, j + 1) * misses[j] for j in range(m))
 
 
+@jax.named_scope("predictor")
 def miss_correction(misses, miss, n, orders=SolverOptions.miss_orders):
     """``(misses, correction)``: the history with element n's ``miss`` of its continued
     polynomial first, and the next element's correction of its continuation. The miss varies
@@ -211,20 +249,23 @@ PEAKS = 4
 
 
 def peak_start(q0, p0, Z0, h):
-    """The carry of the ``PEAKS`` elements whose embedded estimates are the run's largest so far."""
+    """The carry of the ``PEAKS`` elements whose embedded estimates are the run's largest so far:
+    each one's start, root, step and increment."""
     stack = lambda x: jnp.broadcast_to(x, (PEAKS,) + jnp.shape(x))
     return dict(size=jnp.full((PEAKS,), -jnp.inf, q0.dtype), q=stack(q0), p=stack(p0), Z=stack(Z0),
-                h=stack(jnp.asarray(h, q0.dtype)))
+                h=stack(jnp.asarray(h, q0.dtype)), dz=stack(jnp.zeros(2 * q0.shape[0], q0.dtype)))
 
 
-def embedded_size(method, H_bound, q, p, Z, h, increment, field=None):
+@jax.named_scope("estimate")
+def embedded_size(method, H_bound, q, p, Z, h, increment, fields=None):
     """The largest entry of an element's embedded estimate (``embedded_error``, at the method's
-    ``embedded_alpha``; one evaluation of Hamilton's field, or none where ``field``, F at the
-    element's end, is given and read), a number to rank elements by, not a function to
-    differentiate."""
-    q, p, Z, h, increment, field = jax.lax.stop_gradient((q, p, Z, h, increment, field))
-    W = method.polynomial(H_bound, q, p, Z, h)
-    return jnp.max(jnp.abs(embedded_error(H_bound, q, p, W, h, increment, field, embedded_alpha(method))))
+    ``embedded_alpha``; one evaluation of Hamilton's field, or none where ``fields``, F at the
+    element's start and end, are given and the end's is read), a number to rank elements by,
+    not a function to differentiate."""
+    q, p, Z, h, increment, fields = jax.lax.stop_gradient((q, p, Z, h, increment, fields))
+    W = method.polynomial_with(H_bound, q, p, Z, h, increment, fields)
+    end = None if fields is None else fields[1]
+    return jnp.max(jnp.abs(embedded_error(H_bound, q, p, W, h, increment, end, embedded_alpha(method))))
 
 
 def embedded_alpha(method):
@@ -233,23 +274,25 @@ def embedded_alpha(method):
     return float(getattr(method, "embedded_alpha", 1.0))
 
 
-def peak_update(peak, size, q, p, Z, h, ok):
-    """``peak`` with element (q, p, Z, h) in place of its smallest where its embedded estimate's
+@jax.named_scope("estimate")
+def peak_update(peak, size, q, p, Z, h, dz, ok):
+    """``peak`` with element (q, p, Z, h, dz) in place of its smallest where its embedded estimate's
     ``size`` (``embedded_size``) is larger and ``ok``."""
     slot = jnp.argmin(peak["size"])
     bigger = ok & (size > peak["size"][slot])
-    new = dict(size=size, **dict(zip("qpZh", jax.lax.stop_gradient((q, p, Z, h)))))
+    new = dict(size=size, **dict(zip(("q", "p", "Z", "h", "dz"), jax.lax.stop_gradient((q, p, Z, h, dz)))))
     return jax.tree.map(lambda a, b: jnp.where(bigger, a.at[slot].set(b), a), peak, new)
 
 
+@jax.named_scope("estimate")
 def peak_estimate(method, H_bound, peak):
     """The run's largest local error: the full a posteriori estimate (``local_error``) on the
     elements where the embedded one, of lower order, peaks (the full one peaks among them: one
     field evaluation per element instead of J + 1 and J Jacobian products). Returns ``(estimate,
     relative)``, the largest of the errors and of their ``relative_error``s."""
     frozen = jax.lax.stop_gradient(peak)
-    local = jax.vmap(lambda q, p, Z, h: method.local_error(H_bound, q, p, Z, h))(
-        frozen["q"], frozen["p"], frozen["Z"], frozen["h"])
+    local = jax.vmap(lambda q, p, Z, h, dz: method.local_error_with(H_bound, q, p, Z, h, dz))(
+        frozen["q"], frozen["p"], frozen["Z"], frozen["h"], frozen["dz"])
     taken = frozen["size"] > -jnp.inf
     relative = jax.vmap(relative_error)(local, jnp.concatenate([frozen["q"], frozen["p"]], axis=1))
     return jax.lax.stop_gradient((jnp.max(jnp.where(taken, local, 0.0)), jnp.max(jnp.where(taken, relative, 0.0))))
@@ -298,7 +341,6 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         estimate of a failed run are NaN.
     """
     solver = options.solver
-    fn = element_residual(H, solver.sweep_dimension)
     H_bound = bind_args(H, args)
     d = q0.shape[0]
     split = lambda z: (z[:d], z[d:])
@@ -328,7 +370,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         idle = jnp.zeros((), bool) if n_active is None else done >= n_active
         return h_el, idle
 
-    def extras(c, new, q, p, Z, h_el, dz, z, z1, ok, idle, field=None):
+    def extras(c, new, q, p, Z, h_el, dz, z, z1, ok, idle, fields=None):
         """What a run asks for beyond the state: the estimate, the diagnostics, the idling of a
         member past t1, the progress bar and the dense output."""
         full = estimate == "full"
@@ -340,14 +382,14 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         if observe is not None:
             new["acc"] = observe(c["acc"], *split(state(new)))
         if estimate is True:
-            size = embedded_size(method, H_bound, q, p, Z, h_el, dz, None if field is None else field())
-            new["peak"] = peak_update(c["peak"], size, q, p, Z, h_el, ok & ~idle)
+            size = embedded_size(method, H_bound, q, p, Z, h_el, dz, None if fields is None else fields())
+            new["peak"] = peak_update(c["peak"], size, q, p, Z, h_el, dz, ok & ~idle)
         if n_active is not None:
             new = jax.tree.map(lambda a, b: jnp.where(idle, a, b), dict(c, done=c["done"] + 1), new)
         if progress:
             _progress.report(new["done"], total, _progress.stride(total))
         # dense output: the element polynomial refined to the nodes' accuracy (``_output.refined``)
-        kept = (z, _output.refined(method, H_bound, z, z1, method.polynomial(H_bound, q, p, Z, h_el), h_el)
+        kept = (z, _output.refined(method, H_bound, z, z1, method.polynomial_with(H_bound, q, p, Z, h_el, dz), h_el)
                 ) if dense else None
         return new, kept
 
@@ -357,27 +399,28 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         failed run goes on from its start values, read in place of the carried ones (the
         selection fuses into the element's first kernels)."""
         failed = c["status"] != Status.SUCCESS
-        q, p, memo = (jnp.where(failed, c[k + "0"], c[k]) for k in ("q", "p", "memo"))
+        q, p, memo0 = (jnp.where(failed, c[k + "0"], c[k]) for k in ("q", "p", "memo"))
         h_el, idle = step_size(c["done"])
-        Z, (dq, dp), memo = method.explicit(H_bound, q, p, h_el, memo)
+        e = element(method, H, q, p, h_el, args, options, memo=memo0)
+        dq, dp = jnp.split(e.dz, 2)
         q1, p1 = q + dq, p + dp
-        ok = ~failed & finite(q1, p1)
-        new = dict(c, q=q1, p=p1, memo=memo, steps=c["steps"] + ok, done=c["done"] + 1,
-                   status=jnp.where(ok | failed, c["status"], Status.NONFINITE).astype(jnp.int32))
+        ok = ~failed & (e.status == Status.SUCCESS)
+        new = dict(c, q=q1, p=p1, memo=e.memo, steps=c["steps"] + ok, done=c["done"] + 1,
+                   status=jnp.where(ok | failed, c["status"], e.status).astype(jnp.int32))
         z = jnp.concatenate([q, p]) if dense else None
-        return extras(c, new, q, p, Z, h_el, jnp.concatenate([dq, dp]), z, jnp.concatenate([q1, p1]) if dense else None,
-                      ok, idle, field=lambda: method.explicit_field(H_bound, q1, p1, memo))
+        return extras(c, new, q, p, e.Z, h_el, e.dz, z, jnp.concatenate([q1, p1]) if dense else None,
+                      ok, idle, fields=lambda: (method.explicit_field(H_bound, q, p, memo0),
+                                                method.explicit_field(H_bound, q1, p1, e.memo)))
 
-    def element(c):
+    def iterated_element(c):
         z, counters = c["z"], c["counters"]
         (q, p), failed = split(z), counters[_AT["status"]] != Status.SUCCESS
         h_el, idle = step_size(c["done"])
         previous = (*split(c["z_prev"]), c["Z_prev"])
         Z_pred, continued, constant = predictor(method, q, p, previous, c["correction"])
-        Z, matrix, iterations, status, trips, lenient = solve(
-            fn, (method, q, p, h_el, args), Z_pred, constant, c["matrix"], c["scale"], failed | idle,
-            c["done"] == 0, options)
-        dz = jnp.concatenate(method.increment(H_bound, q, p, Z, h_el))
+        Z, dz, _, matrix, iterations, status, trips, lenient = element(
+            method, H, q, p, h_el, args, options, predicted=Z_pred, constant=constant, matrix=c["matrix"],
+            scale=c["scale"], skip=failed | idle, first=c["done"] == 0)
         z1, comp = compensated_add(z, dz, c["comp"])
         scale = state_scale(z1)  # the next element's (NaN or inf where z1 is not finite)
         status = jnp.where((status == Status.SUCCESS) & ~jnp.isfinite(scale), Status.NONFINITE, status)
@@ -402,7 +445,7 @@ def march(method, H, q0, p0, h, args, *, n_blocks, block_size, options, checkpoi
         return split(nan_if_failed(state(c), status_of(c)))
 
     def block(c, _):
-        c, kept = jax.lax.scan(lambda c, _: (explicit_element if explicit else element)(c), c, None,
+        c, kept = jax.lax.scan(lambda c, _: (explicit_element if explicit else iterated_element)(c), c, None,
                                length=block_size)
         return c, (reported(c), kept)
 

@@ -145,6 +145,19 @@ class AbstractMethod(abc.ABC):
         dz = jnp.concatenate(self.increment(H, q0, p0, Z, h))
         return local_error(H, q0, p0, self.polynomial(H, q0, p0, Z, h), dz, h)
 
+    def polynomial_with(self, H, q0, p0, Z, h, increment, fields=None):
+        """``polynomial`` of an element whose increment ``z1 - z0`` (shape ``(2d,)``) the run has
+        already, and maybe Hamilton's field at both ends (``fields = (F(z0), F(z1))``, else
+        None). The default ignores them; a method whose polynomial is built from its ends
+        (compositions, splittings: the Hermite cubic) overrides it, so that the run does not
+        compute its stages again."""
+        return self.polynomial(H, q0, p0, Z, h)
+
+    def local_error_with(self, H, q0, p0, Z, h, increment):
+        """``local_error`` of an element whose increment the run has already
+        (``polynomial_with``)."""
+        return self.local_error(H, q0, p0, Z, h)
+
 
 def degree_and_rule(degree, least):
     """A base class for methods given by a polynomial degree and a quadrature rule: the frozen

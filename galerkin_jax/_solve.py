@@ -600,6 +600,7 @@ def _block(problem, c, inverse, size):
     ))
 
 
+@jax.named_scope("fixed_point")
 def _fixed_point(problem, c):
     """The fixed-point phase: members not in Newton mode iterate ``Z <- Z - R(Z)`` in blocks
     until they converge, fail or ask for a Newton matrix. Its loop carries no matrix.
@@ -631,6 +632,7 @@ def _fixed_point(problem, c):
     return jax.lax.cond(jnp.any(moving(problem, c)), stragglers, lambda c: c, c)
 
 
+@jax.named_scope("settle")
 def _settle(problem, c, skip, updates):
     """``updates`` more fixed-point updates, each from a fresh residual, for the members the
     fixed-point phase accepted (``Options.settle``; not counted in ``iterations``, as the polish
@@ -714,6 +716,7 @@ def _rewind(c, reference):
     return _pack(c), (_select(idle, Z, reference[0]), _select(idle, r, reference[1]))
 
 
+@jax.named_scope("newton")
 def _newton(problem, c, inverse, reference):
     """The Newton phase: members in Newton mode, and those that asked for it, iterate with
     their matrices, one checked update at a time (damping needs each).
@@ -744,6 +747,7 @@ def _newton(problem, c, inverse, reference):
     return jax.lax.while_loop(moving, round, (c, inverse, reference))
 
 
+@jax.named_scope("krylov")
 def _newton_krylov(problem, c, reference):
     """The Newton phase of a system without a dense matrix: every update a fresh Newton
     direction, by GMRES (``_Problem.newton_krylov``). There is no matrix to wait for: every
@@ -758,6 +762,7 @@ def _newton_krylov(problem, c, reference):
     return jax.lax.while_loop(moving, step, (serve(c), reference))
 
 
+@jax.named_scope("start")
 def _start(problem, Z_pred, Z_alt, skip):
     """The first iterate and its residual: ``Z_pred``, or the constant ``Z_alt`` where that has
     the smaller residual and ``Z_pred``'s residual is not small against ``Z_pred`` (a continued

@@ -126,8 +126,9 @@ class Tao(ExplicitMap):
     Hence the default omega = 0 (no binding: the extended map is then Pihajoki's leapfrog); a
     given omega should be a constant, below 1 / h.
 
-    The element's unknowns are the increments Z = (dq | dp), the root of R(Z) = Z - Phi_h(z0)
-    + z0, which a run whose elements the solver iterates finds in one update; the element
+    The element's unknowns are the increments and the copies' half difference at the
+    element's end, Z = (dq | dp | (q - x) / 2 | (p - y) / 2), which a run whose elements the
+    solver iterates finds in one update (``ExplicitMap``); the element
     polynomial is the Hermite cubic through the end states (``_composition.hermite_polynomial``).
     ``local_error`` is the larger of the defect estimate and half the copies' distance at the
     element's end (max-norm): where they part (a step too long for H) the run's estimate
@@ -146,6 +147,7 @@ class Tao(ExplicitMap):
     stages: tuple = dataclasses.field(default=(1.0,), metadata=dict(static=True))
 
     symmetric = False  # to O(h^6), not to round-off: no checkpoint="reversible"
+    unknowns = 4  # (dq | dp | (q - x) / 2 | (p - y) / 2)
 
     def __post_init__(self):
         omega = self.omega
@@ -170,22 +172,20 @@ class Tao(ExplicitMap):
         return jnp.zeros((), q0.dtype)
 
     def explicit(self, H, q0, p0, h, memo):
-        """The element: ``(Z, (dq, dp), memo)``, the copies' mean less the start."""
+        """The element: ``(Z, (dq, dp), memo)``, the copies' mean less the start, and Z these
+        increments with the copies' half difference ``((q - x) / 2 | (p - y) / 2)``."""
         q, p, x, y = self.extended(H, q0, p0, h)
         dq, dp = (q + x) / 2 - q0, (p + y) / 2 - p0
-        return jnp.concatenate([dq, dp]), (dq, dp), memo
+        return jnp.concatenate([dq, dp, (q - x) / 2, (p - y) / 2]), (dq, dp), memo
 
     def explicit_field(self, H, q1, p1, memo):
         """Hamilton's field at the element's end, evaluated there (one gradient)."""
         return hamilton_field(H)(q1, p1)
 
-    def divergence(self, H, q0, p0, h):
-        """Half the copies' distance at the element's end, max-norm: |q - x| / 2, |p - y| / 2."""
-        q, p, x, y = self.extended(H, q0, p0, h)
-        return jnp.max(jnp.abs(jnp.concatenate([q - x, p - y]))) / 2
-
-    def local_error(self, H, q0, p0, Z, h):
-        """The larger of the defect estimate (``AbstractMethod.local_error``) and half the
-        copies' distance at the element's end (``divergence``)."""
-        return jnp.maximum(super().local_error(H, q0, p0, Z, h), self.divergence(H, q0, p0, h))
+    def local_error_with(self, H, q0, p0, Z, h, increment):
+        """The larger of the defect estimate (``ExplicitMap.local_error_with``) and half the
+        copies' distance at the element's end, max-norm (|q - x| / 2, |p - y| / 2: the last
+        blocks of Z)."""
+        divergence = jnp.max(jnp.abs(Z[2 * q0.shape[0]:]))
+        return jnp.maximum(super().local_error_with(H, q0, p0, Z, h, increment), divergence)
 

@@ -519,3 +519,39 @@ def test_an_inaccurate_run_keeps_its_derivatives():
     fixed = lambda p0: jnp.sum(gj.integrate(H, q0, p0, method=method, h=2.0, n_steps=20).q[-1])
     loop = lambda p0: jnp.sum(gj.integrate(H, q0, p0, method=method, h=2.0, t1=40.0, save_at=jnp.array([40.0])).q[-1])
     np.testing.assert_allclose(jax.grad(loop)(p0), jax.grad(fixed)(p0), rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", [gj.Composition(VERLET, "kahan_li8"), gj.Composition(gj.CG(2, gj.gauss_legendre(2))),
+                                    gj.Splitting("blanes_moan_rkn6"), gj.Tao(), gj.Composition(gj.Tao(), "yoshida4")],
+                         ids=["kahan_li8 of Verlet", "triple jump of cG(2)", "blanes_moan_rkn6", "Tao", "Tao, yoshida4"])
+def test_an_elements_polynomial_and_estimate_from_its_increment_equal_the_methods_own(method):
+    """A run hands ``polynomial_with`` and ``local_error_with`` the increment it has (and an
+    explicit element the field at its ends), so a composition's stages are not computed again:
+    the Hermite cubic and the local error equal ``polynomial`` and ``local_error`` computed
+    from the unknowns alone, to round-off (measured: equal to 1e-16)."""
+    H, q0, p0 = KEPLER
+    h = 0.05
+    form = explicit_form(method, H, q0, p0, None, gj.SolverOptions())
+    if form is not None and callable(getattr(form, "explicit", None)):
+        memo = form.explicit_start(H, q0, p0)
+        Z, (dq, dp), memo1 = form.explicit(H, q0, p0, h, memo)
+        fields = form.explicit_field(H, q0, p0, memo), form.explicit_field(H, q0 + dq, p0 + dp, memo1)
+    else:  # the triple jump of cG(2) iterates: its element's root
+        form = method
+        Z = _root(method, H, q0, p0, h)
+        dq, dp = method.increment(H, q0, p0, Z, h)
+        fields = None
+    dz = jnp.concatenate([dq, dp])
+    own = form.polynomial(H, q0, p0, Z, h)
+    for given in (None, fields):
+        np.testing.assert_allclose(form.polynomial_with(H, q0, p0, Z, h, dz, given), own, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(form.local_error_with(H, q0, p0, Z, h, dz), form.local_error(H, q0, p0, Z, h),
+                               rtol=1e-12)
+    assert float(form.local_error(H, q0, p0, Z, h)) > 0
+
+
+def _root(method, H, q0, p0, h):
+    """The root of ``method``'s element equations from (q0, p0) (``_march.solve_element``)."""
+    from galerkin_jax._march import solve_element, solver_options
+
+    return solve_element(method, H, q0, p0, h, None, solver_options(method))[2]

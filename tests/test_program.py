@@ -6,6 +6,8 @@ A timing would be noisy; the size of the lowered program is not: lowering is det
 ``test_programs_stay_within_their_budget`` fails wherever a change bloats a standard program.
 """
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,6 +15,7 @@ import pytest
 
 import galerkin_jax as gj
 from galerkin_jax import scenes
+from conftest import COMPILE_FLAGS
 from helpers import kepler
 
 # StableHLO operations (SSA definitions of the lowered module) of five standard programs, as
@@ -61,6 +64,63 @@ def test_programs_stay_within_their_budget(name):
     assert count <= MARGIN * BUDGETS[name], f"{name}: {count} operations, budget {BUDGETS[name]} (+10 %)"
     # a budget far above the program hides the next bloat: record the new size when it shrinks
     assert count >= 0.8 * BUDGETS[name], f"{name}: {count} operations, budget {BUDGETS[name]}: record the new size"
+
+
+def kernels(fn, *args):
+    """The kernels (fusions) XLA compiles for ``jax.jit(fn)`` at ``args``: what sets its compile time."""
+    return jax.jit(fn).lower(*args).compile().as_text().count(" fusion(")
+
+
+def _kernel_programs():
+    """Every run kind on Kepler (cG(4) + Gauss 4, the whole ``Solution`` returned, so nothing
+    it computes is left out), a gradient of each step rule, a sweep, and methods in closed
+    form with and without their error estimate."""
+    H, q0, p0 = kepler(0.6)
+    cg4 = gj.CG(4, gj.gauss_legendre(4))
+    verlet = gj.GalerkinVI(1, gj.trapezoid())
+    pid = gj.PIDController(1e-10, 1e-10)
+    run = lambda **kw: lambda q0, p0: gj.integrate(H, q0, p0, **({"method": cg4, "h": 0.01, "t1": 6.0} | kw))
+    grad = lambda **kw: jax.grad(lambda q0, p0: jnp.sum(run(**kw)(q0, p0).q[-1] ** 2))
+    configs = gj.grid(method=cg4, h=[0.01, 0.02], state=[(q0, p0), (q0, 0.99 * p0)])
+    return {
+        "fixed": (run(), q0, p0),
+        "PID": (run(controller=pid), q0, p0),
+        "TimeTransform": (run(controller=gj.TimeTransform(), h=0.05), q0, p0),
+        "PID, save_at, event": (run(controller=pid, save_at=jnp.linspace(1.0, 6.0, 6),
+                                    events=gj.Event(lambda t, q, p: q[1], capacity=4)), q0, p0),
+        "dense": (run(dense=True), q0, p0),
+        "sweep": (lambda configs: gj.sweep(H, configs, n_steps=600), configs),
+        "fixed gradient": (grad(), q0, p0),
+        "PID gradient": (grad(controller=pid), q0, p0),
+        "Verlet": (run(method=verlet), q0, p0),
+        "Verlet, no estimate": (run(method=verlet, error_estimate=False), q0, p0),
+        "kahan_li8": (run(method=gj.Composition(verlet, "kahan_li8")), q0, p0),
+        "kahan_li8, no estimate": (run(method=gj.Composition(verlet, "kahan_li8"), error_estimate=False), q0, p0),
+        "Tao kahan_li8": (run(method=gj.Composition(gj.Tao(), "kahan_li8")), q0, p0),
+    }
+
+
+# Kernels of each ``_kernel_programs`` program, as measured with JAX 0.10.2 on CPU under the suite's
+# compile options (``conftest.COMPILE_FLAGS``; XLA's defaults fuse differently: 164 kernels for
+# "fixed", ``benchmarks/results/compile.json``). XLA compiles each kernel in about 4-8 ms. A method
+# in closed form with its default error estimate (the embedded estimate per element, the full
+# one on the four elements where it peaks) compiles 37 kernels more than without (Verlet 55
+# against 18); a composition builds its elements' Hermite cubics from the increments it has
+# (``polynomial_with``), so its estimate costs about what Verlet's does (kahan_li8 119 against
+# 76; with the default options 282 against 97 when the stages were computed again for it).
+KERNELS = {"fixed": 141, "PID": 155, "TimeTransform": 262, "PID, save_at, event": 228, "dense": 170,
+           "sweep": 220, "fixed gradient": 140, "PID gradient": 263, "Verlet": 55, "Verlet, no estimate": 18,
+           "kahan_li8": 119, "kahan_li8, no estimate": 76, "Tao kahan_li8": 212}
+
+
+@pytest.mark.skipif(not all(flag in os.environ.get("XLA_FLAGS", "") for flag in COMPILE_FLAGS),
+                    reason="the kernels were counted under the suite's compile options")
+@pytest.mark.parametrize("name", sorted(KERNELS))
+def test_every_run_kind_compiles_within_its_kernel_budget(name):
+    fn, *args = _kernel_programs()[name]
+    count = kernels(fn, *args)
+    assert count <= MARGIN * KERNELS[name], f"{name}: {count} kernels, budget {KERNELS[name]} (+10 %)"
+    assert count >= 0.8 * KERNELS[name], f"{name}: {count} kernels, budget {KERNELS[name]}: record the new count"
 
 
 def test_a_direction_known_when_traced_is_a_constant_of_the_program():
