@@ -13,7 +13,8 @@ compile time (about 4-8 ms each on this CPU). diffrax's equivalent runs in the s
 with the same state and span: Dopri8 with a constant step or with its PID controller (and
 Tsit5 for the forward run kinds). Part ``explicit``: methods in closed form on Kepler beside the
 same steps written by hand (``explicit``). Results: ``results/compile.json``. (The CLI and the README's
-tour with the compilation cache were measured once by parts ``cli`` and ``tour``, since removed:
+tour with the compilation cache were measured once by parts ``cli`` and ``tour``, since removed,
+in ``results/compile_cli.json`` and ``results/compile_tour.json``:
 notes/README.md.)
 """
 

@@ -385,7 +385,7 @@ def integrate(
               Span(t0, t1, h, _output.Direction(sigma), n_steps=n_steps, max_steps=max_steps),
               Outputs(ts, events, nodes=nodes, save_every=save_every, dense=bool(dense), estimate=estimate),
               RunOptions(options, checkpoint=checkpoint, progress=bool(progress)))
-    sol = _directed(run)
+    sol = _reversible.reverse_mode_only(_directed)(run) if checkpoint == _reversible.REVERSIBLE else _directed(run)
     if single:
         sol = dataclasses.replace(sol, events=sol.events[0])
     if throw:

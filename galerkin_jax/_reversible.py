@@ -183,3 +183,24 @@ def _bwd(H, statics, residuals, cotangents):
 
 
 reversible_march.defvjp(_fwd, _bwd)
+
+FORWARD_MODE = ("checkpoint='reversible' gives reverse-mode derivatives (jax.grad, jax.vjp, jax.jacrev): its "
+                "backward pass rebuilds the states instead of storing them. Forward mode (jax.jvp, jax.jacfwd) "
+                "stores no states anyway: use checkpoint=False for it.")
+
+
+def reverse_mode_only(run):
+    """``run`` (a call that reaches ``reversible_march``), whose forward mode (a ``jax.custom_vjp``
+    has none) raises a TypeError that says what to use instead. Where JAX transforms the run
+    after tracing it (``jax.linearize``; ``jax.jvp`` of a ``jax.jit`` around the call) JAX
+    raises its own TypeError, "can't apply forward-mode autodiff (jvp) to a custom_vjp function"."""
+
+    def refusing(*args):
+        try:
+            return run(*args)
+        except TypeError as error:
+            if "forward-mode" not in str(error):
+                raise
+            raise TypeError(FORWARD_MODE) from None
+
+    return refusing

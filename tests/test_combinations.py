@@ -539,11 +539,16 @@ def test_harness_methods_closures_and_densities_against_exact_solutions_and_both
 
     finite = np.isfinite(np.asarray(outputs(x)))
     f = lambda x: jnp.where(finite, outputs(x), 0.0)
-    jacobians = jax.jit(lambda x: helpers.jacobians(f, x)) if case["traced"] else (lambda x: helpers.jacobians(f, x))
-    _, forward, reverse = jacobians(x)
-    np.testing.assert_allclose(reverse, forward, rtol=1e-9, atol=1e-9, err_msg=str(case))
-    numerical = jnp.stack([(f(x + 1e-6 * e) - f(x - 1e-6 * e)) / 2e-6 for e in jnp.eye(4)], 1)
-    if case["reversible"]:
+    traced = (lambda fn: jax.jit(fn)) if case["traced"] else (lambda fn: fn)
+    if case["reversible"]:  # reverse mode only: forward mode refused with what to use instead (JAX's own
+        # message where the run is a jit that JAX transforms after tracing it: ``_reversible.reverse_mode_only``)
+        with pytest.raises(TypeError, match="forward-mode autodiff" if case["traced"] else "reverse-mode derivatives"):
+            traced(jax.jacfwd(f))(x)
+        forward = traced(jax.jacrev(f))(x)
         assert not np.any(np.asarray(forward[:, :2])), case  # t0, t1 are constants of that run
+    else:
+        _, forward, reverse = traced(lambda x: helpers.jacobians(f, x))(x)
+        np.testing.assert_allclose(reverse, forward, rtol=1e-9, atol=1e-9, err_msg=str(case))
+    numerical = jnp.stack([(f(x + 1e-6 * e) - f(x - 1e-6 * e)) / 2e-6 for e in jnp.eye(4)], 1)
     np.testing.assert_allclose(forward, numerical, rtol=0, atol=1e-5 * max(1.0, float(np.max(np.abs(forward)))),
                                err_msg=str(case))

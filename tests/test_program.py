@@ -60,10 +60,14 @@ def _programs():
 @pytest.mark.parametrize("name", sorted(BUDGETS))
 def test_programs_stay_within_their_budget(name):
     fn, *args = _programs()[name]
-    count = operations(fn, *args)
-    assert count <= MARGIN * BUDGETS[name], f"{name}: {count} operations, budget {BUDGETS[name]} (+10 %)"
-    # a budget far above the program hides the next bloat: record the new size when it shrinks
-    assert count >= 0.8 * BUDGETS[name], f"{name}: {count} operations, budget {BUDGETS[name]}: record the new size"
+    within_budget(name, operations(fn, *args), BUDGETS[name], "operations")
+
+
+def within_budget(name, count, budget, unit):
+    """``count`` at most ``MARGIN`` times ``budget``, and at least 0.8 times it: a budget far above
+    the program hides the next bloat, so a program that shrinks records its new size."""
+    assert count <= MARGIN * budget, f"{name}: {count} {unit}, budget {budget} (+10 %)"
+    assert count >= 0.8 * budget, f"{name}: {count} {unit}, budget {budget}: record the new size"
 
 
 def kernels(fn, *args):
@@ -118,9 +122,7 @@ KERNELS = {"fixed": 141, "PID": 155, "TimeTransform": 262, "PID, save_at, event"
 @pytest.mark.parametrize("name", sorted(KERNELS))
 def test_every_run_kind_compiles_within_its_kernel_budget(name):
     fn, *args = _kernel_programs()[name]
-    count = kernels(fn, *args)
-    assert count <= MARGIN * KERNELS[name], f"{name}: {count} kernels, budget {KERNELS[name]} (+10 %)"
-    assert count >= 0.8 * KERNELS[name], f"{name}: {count} kernels, budget {KERNELS[name]}: record the new count"
+    within_budget(name, kernels(fn, *args), KERNELS[name], "kernels")
 
 
 def test_a_direction_known_when_traced_is_a_constant_of_the_program():

@@ -181,3 +181,18 @@ def test_a_failed_run_has_a_nan_reversible_gradient():
 
     g, status = jax.grad(loss, has_aux=True)(Q0)
     assert int(status) != 0 and np.all(np.isnan(np.asarray(g)))
+
+
+@pytest.mark.parametrize("mode", ["jvp", "jacfwd under jit"])
+def test_forward_mode_of_a_reversible_run_says_what_to_use_instead(mode):
+    """The reversible gradient is a ``jax.custom_vjp``, which has no forward mode: ``jax.jvp`` and
+    ``jax.jacfwd`` raise a TypeError that names checkpoint=False (found by the combination
+    harness, where JAX's own message named no cause); reverse mode equals checkpoint=False's."""
+    H = lambda q, p: 0.5 * (p @ p + q @ q)
+    run = lambda checkpoint: lambda s: gj.integrate(H, jnp.array([1.0]) * s, jnp.array([0.0]),
+                                                    method=gj.CG(2, gj.gauss_legendre(2)), t1=2.5, h=0.1,
+                                                    checkpoint=checkpoint).q[-1, 0]
+    forward = {"jvp": lambda f: jax.jvp(f, (1.0,), (1.0,))[1], "jacfwd under jit": lambda f: jax.jit(jax.jacfwd(f))(1.0)}
+    with pytest.raises(TypeError, match="checkpoint=False"):
+        forward[mode](run("reversible"))
+    np.testing.assert_allclose(jax.grad(run("reversible"))(1.0), forward[mode](run(False)), rtol=1e-10)
