@@ -193,17 +193,17 @@ def test_a_step_too_long_for_the_solve_fails_after_two_matrices(monkeypatch):
     3.6e-9. Bounds: at most 2 per attempt, at least 5 attempts that fail (status 1) on their
     second matrix (the cap is reached), at least 100 matrices in the uncapped run (the hooks
     counted), half of those with the cap, error 1e-7."""
-    from galerkin_jax import _adaptive, _solve
+    from galerkin_jax import _march, _solve
 
     log = []
-    solve = _adaptive.solve
+    solve = _march.solve  # the root finder of every element (``_march.element``)
 
     def attempt(*args):
         out = solve(*args)
         jax.debug.callback(lambda status: log.append(int(status)), out[3], ordered=True)
         return out
 
-    monkeypatch.setattr(_adaptive, "solve", attempt)
+    monkeypatch.setattr(_march, "solve", attempt)
     count_matrices(monkeypatch, log)  # clears the cached traces: both wrappers are traced
     He, q0, p0, T2, z1 = orbits_from_apocentre(0.9)
     runs = {}
