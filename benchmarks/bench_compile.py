@@ -38,12 +38,13 @@ jax.monitoring.register_event_duration_secs_listener(
 
 
 def program_size(fn, *args):
-    """``(stablehlo_ops, kernels)`` of ``jax.jit(fn)`` at ``args``: operations of the lowered
-    module and fusions of the compiled one."""
+    """``(stablehlo_ops, kernels, parts)`` of ``jax.jit(fn)`` at ``args``: operations of the
+    lowered module, fusions of the compiled one, and those fusions by part (``kernels_by_part``),
+    from one lowering and one compilation."""
     lowered = jax.jit(fn).lower(*args)
     ops = sum(1 for line in lowered.as_text().splitlines() if re.match(r"\s*(%\S+ = )?\"?[a-z_]+\.[a-z_]", line))
-    kernels = len(re.findall(r" fusion\(", lowered.compile().as_text()))
-    return ops, kernels
+    parts = kernels_by_part(lowered.compile().as_text())
+    return ops, sum(parts.values()), parts
 
 
 # the parts of a program (``jax.named_scope`` in the library: the root finder's phases, the
@@ -53,11 +54,11 @@ PARTS = ("start", "fixed_point", "settle", "newton", "krylov", "element", "predi
          "save_at", "events", "dense", "checkpoints")
 
 
-def kernels_by_part(fn, *args):
-    """``{part: kernels}`` of ``jax.jit(fn)`` at ``args`` (``PARTS``), by the operation each
+def kernels_by_part(compiled_text):
+    """``{part: kernels}`` of a compiled program's text (``PARTS``), by the operation each
     fusion's result comes from (XLA's ``op_name`` metadata)."""
     counts = dict.fromkeys(PARTS + ("loop",), 0)
-    for line in jax.jit(fn).lower(*args).compile().as_text().splitlines():
+    for line in compiled_text.splitlines():
         if " fusion(" not in line:
             continue
         name = re.search(r'op_name="([^"]+)"', line)
@@ -78,9 +79,9 @@ def first_call(make, sized=True):
     total = time.perf_counter() - t0
     compile_s = sum(_durations)
     run = best_time(fn, *args, repeat=3, min_s=0.0)
-    ops, kernels = program_size(fn, *args) if sized else (None, None)
+    ops, kernels, parts = program_size(fn, *args) if sized else (None, None, None)
     return dict(total=total, trace_and_lower=max(total - compile_s - run, 0.0), compile=compile_s, run=run,
-                stablehlo_ops=ops, kernels=kernels, parts=kernels_by_part(fn, *args) if sized else None)
+                stablehlo_ops=ops, kernels=kernels, parts=parts)
 
 
 PROBLEMS = {  # (scene, span, method, tolerance)

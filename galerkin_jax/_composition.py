@@ -117,17 +117,22 @@ class ExplicitMap(AbstractMethod):
         """Z less the unknowns the map computes (its root: those)."""
         return Z - self.explicit(H, q0, p0, h, self.explicit_start(H, q0, p0))[0]
 
+    @staticmethod
+    def _increment(q0, Z):
+        """z1 - z0, the first two blocks of Z."""
+        return Z[:2 * q0.shape[0]]
+
     def increment(self, H, q0, p0, Z, h):
-        return jnp.split(Z[:2 * q0.shape[0]], 2)
+        return jnp.split(self._increment(q0, Z), 2)
 
     def polynomial(self, H, q0, p0, Z, h):
-        return hermite_polynomial(H, q0, p0, Z[:2 * q0.shape[0]], h)
+        return hermite_polynomial(H, q0, p0, self._increment(q0, Z), h)
 
     def polynomial_with(self, H, q0, p0, Z, h, increment, fields=None):
         return hermite_polynomial(H, q0, p0, increment, h, fields)
 
     def local_error(self, H, q0, p0, Z, h):
-        return self.local_error_with(H, q0, p0, Z, h, Z[:2 * q0.shape[0]])
+        return self.local_error_with(H, q0, p0, Z, h, self._increment(q0, Z))
 
     def local_error_with(self, H, q0, p0, Z, h, increment):
         return hermite_error(H, q0, p0, increment, h)
