@@ -37,12 +37,37 @@ def check_step_size(h):
             raise ValueError(f"h must be finite and > 0, got {value}.")
 
 
-def check_counts(n_steps, save_every):
-    for name, value, least in (("n_steps", n_steps, 1), ("save_every", save_every, 1)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}.")
+def check_counts(n_steps, save_every, name="n_steps"):
+    if isinstance(n_steps, jax.core.Tracer):
+        raise ValueError(f"A traced {name} needs max_steps, the elements reserved (n_steps is then a value).")
+    for label, value in ((name, n_steps), ("save_every", save_every)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"{label} must be an integer >= 1, got {value!r}.")
     if n_steps % save_every:
-        raise ValueError(f"n_steps ({n_steps}) must be a multiple of save_every ({save_every}).")
+        raise ValueError(f"{name} ({n_steps}) must be a multiple of save_every ({save_every}).")
+
+
+def check_count(n_steps):
+    """``n_steps`` of a reserve (``max_steps``): an integer >= 1, or a traced integer scalar
+    (whose value the run checks: INVALID_INPUT below 0). Returns it as an int32 value."""
+    if isinstance(n_steps, jax.core.Tracer):
+        if jnp.ndim(n_steps) != 0 or not jnp.issubdtype(jnp.result_type(n_steps), jnp.integer):
+            raise TypeError(f"A traced n_steps must be an integer scalar, got {jax.typeof(n_steps)}.")
+        return jnp.asarray(n_steps, jnp.int32)
+    if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)) and not (
+            isinstance(n_steps, jax.Array) and n_steps.ndim == 0 and jnp.issubdtype(n_steps.dtype, jnp.integer)):
+        raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}.")
+    if int(n_steps) < 1:
+        raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}.")
+    return jnp.asarray(n_steps, jnp.int32)
+
+
+def check_reserve(max_steps, save_every):
+    """The elements a fixed-step run of n_steps reserves (``max_steps``): an integer >= 1, a
+    multiple of ``save_every``."""
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}.")
+    check_counts(max_steps, save_every, name="max_steps")
 
 
 def check_iterations(max_newton_iterations):

@@ -46,13 +46,15 @@ class Span:
     controller's first; None: picked, ``_adaptive.first_step``). ``h_last``: the last element's
     length where fixed steps land on a concrete t1, else None. ``n_steps`` (the elements of fixed
     steps) and ``max_steps`` (a loop's attempts, or the elements a scan to a traced t1 reserves)
-    are static."""
+    are static; ``count``: the elements taken of ``n_steps`` reserved (``integrate``'s n_steps
+    given with max_steps, a value), else None."""
 
     t0: jax.Array = 0.0
     t1: jax.Array = None
     h: jax.Array = None
     direction: object = _output.FORWARDS
     h_last: jax.Array = None
+    count: jax.Array = None
     n_steps: int = dataclasses.field(default=None, **_STATIC)
     max_steps: int = dataclasses.field(default=None, **_STATIC)
 
@@ -295,7 +297,8 @@ def integrate(
             ``TimeTransform``'s: the step in its fictive time tau); it may be traced (vmap over
             step sizes).
         n_steps: the number of elements of size h; default None, then give ``t1``. Static; a
-            multiple of ``save_every``.
+            multiple of ``save_every``. Given with ``max_steps`` it is a value (it may be traced),
+            so another n_steps reuses the compiled program: see ``max_steps``.
         t0: the start time; default 0.0.
         t1: the end time; default None, then give ``n_steps``. t1 < t0 runs backwards in time
             (not with ``LagrangianVI``), also where t0 or t1 is traced (``jit``, ``vmap`` over t1
@@ -306,8 +309,12 @@ def integrate(
             ``PIDController`` for a short accurate run or a ``TimeTransform`` for a long one;
             either needs ``t1``.
         max_steps: the most step attempts, accepted and rejected, of a controller's run; default
-            None (4096). Raise it when a run ends with status MAX_STEPS; with fixed steps to a
-            traced ``t1`` or ``h`` it is required: the elements the scan reserves. Static.
+            None (4096). Raise it when a run ends with status MAX_STEPS. With fixed steps it is
+            the elements the scan reserves, required to a traced ``t1`` or with a traced ``h``: a
+            run of any ``n_steps`` or to any ``t1`` within the reserve reuses one program. Its
+            saves are every ``save_every``-th node of the reserve (a multiple of it), those past
+            the end repeat the end state at the end time; an end beyond the reserve stops there
+            with status MAX_STEPS. Static.
         save_at: the times at which to save the state; default None: every ``save_every``-th
             node of fixed steps, ``[t0, t_end]`` of a run with a controller or events. Times
             between t0 and t1, sorted in the run's direction, are read off the element
@@ -375,7 +382,8 @@ def integrate(
     checkpoint = _reversible.check_checkpoint(checkpoint)
     if checkpoint == _reversible.REVERSIBLE:
         _reversible.check_reversible(method, controller=controller, save_at=save_at, events=events, dense=dense,
-                                     traced_end=n_steps is None and not _span.concrete(h, t0, t1))
+                                     traced_end=max_steps is not None and controller is None
+                                     or n_steps is None and not _span.concrete(h, t0, t1))
     single = isinstance(events, Event)
     events = _span.check_events(events, q0, p0, t0, args)
     sigma = _span.direction(t0, t1, q0.dtype)
@@ -434,10 +442,15 @@ def _dispatch(run):
     fixed = lambda span: _integrate(dataclasses.replace(run, span=span, outputs=dataclasses.replace(outputs,
                                                                                                     nodes=False)))
     if n_steps is not None and outputs.ts is None and outputs.events is None:
-        _checks.check_counts(n_steps, outputs.save_every)
-        return fixed(dataclasses.replace(span, max_steps=None))  # n_steps elements: max_steps reserves none
+        if max_steps is None:
+            _checks.check_counts(n_steps, outputs.save_every)
+            return fixed(span)
+        # n_steps of max_steps reserved: the count is a value, so a new one reuses the program
+        _checks.check_reserve(max_steps, outputs.save_every)
+        return fixed(dataclasses.replace(span, count=_checks.check_count(n_steps), n_steps=max_steps,
+                                         max_steps=None))
     if n_steps is not None:
-        _checks.check_counts(n_steps, 1)
+        _checks.check_count(n_steps)
         span = dataclasses.replace(span, t1=t0 + n_steps * h, n_steps=None)
     span = dataclasses.replace(span, t1=_span.as_value(span.t1, dtype))
     # where h, t0 and t1 are known while tracing (concrete, or differentiated outside jit) the
@@ -503,9 +516,12 @@ def _integrate(run):
     H, q0, p0, method, args = problem.H, problem.q0, problem.p0, problem.method, problem.args
     h, t0, t1, h_last, n_steps, save_every = span.h, span.t0, span.t1, span.h_last, span.n_steps, outputs.save_every
     n_active, t_end = None, t1
-    if t1 is not None and h_last is None:
+    if span.count is not None:  # the count's end; a count beyond the reserve ends short of it
+        n_active = jnp.clip(span.count, 0, n_steps)
+        t1, t_end = t0 + span.count * h, t0 + n_active * h
+    elif t1 is not None and h_last is None:
         n_active, h_last, t_end = reserved_to_t1(t0, t1, h, n_steps)
-    if options.checkpoint == _reversible.REVERSIBLE:  # n_active is None: the caller refused a traced end
+    if options.checkpoint == _reversible.REVERSIBLE:  # n_active is None: the caller refused a reserve
         final, saved = _reversible.reversible_march(
             H, method, q0, p0, h, h_last, args,
             (options.solver, n_steps // save_every, save_every, outputs.estimate, options.progress))
@@ -517,15 +533,15 @@ def _integrate(run):
     )
     if n_active is not None:
         final["status"] = short_of_t1(final["status"], t_end, t1)
-        if not method.hamiltonian:  # a Hamiltonian method's run arrives forwards (``_directed``)
-            final, saved, kept = _forwards_only(t0, t1, final, saved, kept)
+        if span.count is not None:
+            final, saved, kept = _invalid(span.count < 0, final, saved, kept)
+        elif not method.hamiltonian:  # a traced t1 < t0: a Lagrangian has no run backwards (``_directed``)
+            final, saved, kept = _invalid(t1 < t0, final, saved, kept)
     return solution(final, saved, kept, q0, p0, h, save_every, t0, t_end)
 
 
-def _forwards_only(t0, t1, final, saved, kept):
-    """A traced t1 < t0 of a method given a Lagrangian, which has no run backwards
-    (``_directed``), is bad input: status INVALID_INPUT, NaN states."""
-    wrong = t1 < t0
+def _invalid(wrong, final, saved, kept):
+    """Bad input found in the run (a traced value): status INVALID_INPUT, NaN states."""
     final = dict(final, status=jnp.where(wrong, Status.INVALID_INPUT, final["status"]).astype(jnp.int32))
     nan = lambda tree: jax.tree.map(lambda x: jnp.where(wrong, jnp.nan, x), tree)
     return final, nan(saved), nan(kept)

@@ -44,11 +44,12 @@ def check_reversible(method, *, controller=None, save_at=None, events=None, dens
     """A ValueError naming the combination where ``checkpoint="reversible"`` cannot be given:
     a method known not to be symmetric (dG(k): its upwind flux; ``LagrangianVI``: given L; a
     concrete rule not symmetric about alpha = 1/2), or a run whose elements are not fixed in
-    advance (a controller, ``save_at``, events, a traced t1 or h) or that keeps them (dense)."""
+    advance (a controller, ``save_at``, events, a reserve of ``max_steps``: a traced t1 or h,
+    or n_steps given with it) or that keeps them (dense)."""
     what = "checkpoint='reversible'"
     for name, given in (("a controller", controller is not None), ("save_at", save_at is not None),
                         ("events", events is not None), ("dense=True", bool(dense)),
-                        ("fixed steps to a traced t1 or with a traced h (max_steps)", traced_end)):
+                        ("fixed steps in a reserve of max_steps elements (a traced t1 or h needs one)", traced_end)):
         if given:
             raise ValueError(f"{what} is for fixed-step runs of n_steps (or to a concrete t1); not with {name}. "
                              "Use checkpoint=True there.")

@@ -255,8 +255,8 @@ def sweep(
         controller: what chooses the steps, as in ``integrate``; default None, fixed steps. The
             fields of a ``PIDController`` may have shape (B,) to sweep tolerances.
         max_steps: a controller's cap on attempts per configuration; default None (4096). With
-            fixed steps to t1 and traced step sizes it is required: the elements reserved per
-            member. Static.
+            fixed steps to t1 it is the elements reserved per member (a sweep to another t1
+            within it compiles nothing new; required with traced step sizes). Static.
         invariants: the quantities whose largest relative change to track, ``{name: I(q, p)}``
             (e.g. angular momentum); default None, energy only.
         reference: the exact final state ``(q_ref, p_ref)``, each like ``configs.q0``
@@ -302,16 +302,17 @@ def sweep(
     counts = None
     if t1 is not None and controller is None:
         hs = getattr(configs, "h", None)
-        if _span.concrete(hs, t0, t1):
+        if _span.concrete(hs):
             hs = np.atleast_1d(np.asarray(hs, dtype=float))
             if not np.all(np.isfinite(hs) & (hs > 0)):
                 raise ValueError("configs.h must be finite and > 0.")
-            counts = max(_span.fixed_step_count(t0, t1, h)[0] for h in hs)
-        elif max_steps is None:
-            raise ValueError("A sweep to t1 with traced step sizes needs max_steps: the elements reserved per member.")
-        else:
+        if max_steps is not None:  # reserved: a sweep to another t1 runs the same program
             _span.check_max_steps(max_steps)
             counts = max_steps
+        elif _span.concrete(hs, t0, t1):
+            counts = max(_span.fixed_step_count(t0, t1, h)[0] for h in hs)
+        else:
+            raise ValueError("A sweep to t1 with traced step sizes needs max_steps: the elements reserved per member.")
     configs = _checks.check_sweep(H, configs, n_steps or counts or 1, save_every, invariants, reference)
     _span.check_controller(controller, configs.method, configs.size)
     invariants = dict(invariants or {})

@@ -175,7 +175,8 @@ def _run(H, q0, p0, **kwargs):
 
 
 @pytest.mark.parametrize("case", ["method built anew", "other tolerances", "other t1", "other save_at",
-                                  "other t1, time-transformed", "other t1, fixed steps reserved", "other state"])
+                                  "other t1, time-transformed", "other t1, fixed steps reserved",
+                                  "other n_steps, reserved", "other h, fixed steps", "other state"])
 def test_runs_that_differ_only_in_values_do_not_compile_again(case):
     H, q0, p0 = kepler(0.6)
     cg = lambda: gj.CG(4, gj.gauss_legendre(4))
@@ -192,6 +193,9 @@ def test_runs_that_differ_only_in_values_do_not_compile_again(case):
                                        dict(method=cg(), h=0.1, t1=3.0, controller=gj.TimeTransform())),
         "other t1, fixed steps reserved": (dict(method=cg(), h=0.01, t1=2.0, max_steps=400),
                                            dict(method=cg(), h=0.01, t1=3.5, max_steps=400)),
+        "other n_steps, reserved": (dict(method=cg(), h=0.01, n_steps=120, max_steps=400),
+                                    dict(method=cg(), h=0.01, n_steps=350, max_steps=400)),
+        "other h, fixed steps": (dict(method=cg(), h=0.01, n_steps=50), dict(method=cg(), h=0.02, n_steps=50)),
         "other state": (dict(method=cg(), h=0.01, n_steps=50), dict(method=cg(), h=0.01, n_steps=50)),
     }[case]
     COMPILATIONS.of(_run(H, q0, p0, **first))
@@ -216,6 +220,43 @@ def test_fixed_steps_to_t1_within_their_reserve_end_at_t1_and_beyond_it_stop_wit
     assert int(short.status) == gj.Status.MAX_STEPS and int(short.stats["num_accepted_steps"]) == 200
     np.testing.assert_allclose(float(short.t[-1]), 2.0, rtol=1e-15)
     np.testing.assert_array_equal(short.q[-1], full.q[-1])
+
+
+def test_a_sweep_to_another_t1_within_its_reserve_compiles_nothing_and_equals_the_sweep_without():
+    """``sweep``'s ``max_steps`` with fixed steps to t1 reserves the elements, so another t1
+    runs the program compiled for the first; each member ends where the sweep that counts its
+    elements from t1 ends it (the same elements, the last shortened to land on t1)."""
+    H, q0, p0 = kepler(0.6)
+    configs = gj.grid(method=[gj.CG(3, gj.gauss_legendre(3))], h=[0.01, 0.02], state=[(q0, p0)])
+    run = lambda t1, **kw: gj.sweep(H, configs, t1=t1, **kw)
+    COMPILATIONS.of(lambda: run(1.005, max_steps=300).q)
+    assert COMPILATIONS.of(lambda: run(2.5, max_steps=300).q) == 0
+    np.testing.assert_allclose(run(2.5, max_steps=300).q, run(2.5).q, rtol=0, atol=1e-14)
+
+
+def test_n_steps_within_a_reserve_equal_the_run_without_and_beyond_it_stop_with_max_steps():
+    """``n_steps`` with ``max_steps`` is a value (traced under jit and vmap, one program for
+    every count): within the reserve the run equals the one of n_steps elements without it
+    (the same elements, so to the last bit), its saves past the end repeat the end state at
+    t0 + n_steps h; beyond it the run stops after the reserve with status MAX_STEPS; a negative
+    traced count is INVALID_INPUT with NaN states."""
+    H, q0, p0 = kepler(0.6)
+    method = gj.CG(4, gj.gauss_legendre(4))
+    plain = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=120)
+    reserved = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=120, max_steps=200)
+    assert reserved.q.shape == (201, 2) and int(reserved.status) == 0
+    assert int(reserved.stats["num_accepted_steps"]) == 120
+    np.testing.assert_array_equal(reserved.q[:121], plain.q)
+    np.testing.assert_array_equal(reserved.q[121:], jnp.broadcast_to(plain.q[-1], (80, 2)))
+    np.testing.assert_allclose(reserved.t[120:], 1.2, rtol=1e-15)
+    short = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=300, max_steps=200)
+    full = gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=200)
+    assert int(short.status) == gj.Status.MAX_STEPS
+    np.testing.assert_array_equal(short.q[-1], full.q[-1])
+    end = jax.jit(jax.vmap(lambda n: gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=n, max_steps=200,
+                                                  save_every=200)))(jnp.array([120, 200, -1]))
+    np.testing.assert_array_equal(end.q[:2, -1], jnp.stack([plain.q[-1], full.q[-1]]))
+    assert end.status.tolist() == [0, 0, gj.Status.INVALID_INPUT] and bool(jnp.isnan(end.q[2, -1]).all())
 
 
 _CACHED_RUN = """

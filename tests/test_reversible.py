@@ -124,6 +124,8 @@ def test_reversible_gradient_memory_does_not_grow_with_the_steps():
     (dict(save_at=jnp.array([0.5]), t1=1.0), "save_at"),
     (dict(dense=True), "dense"),
     (dict(events=gj.Event(lambda t, q, p: q[0])), "events"),
+    (dict(max_steps=20), "reserve"),
+    (dict(max_steps=20, t1=0.105), "reserve"),
 ])
 def test_reversible_refuses_what_it_cannot_rebuild(kwargs, match):
     """A method that is not symmetric, or a run whose elements are not fixed in advance: a
