@@ -257,6 +257,11 @@ def test_n_steps_within_a_reserve_equal_the_run_without_and_beyond_it_stop_with_
                                                   save_every=200)))(jnp.array([120, 200, -1]))
     np.testing.assert_array_equal(end.q[:2, -1], jnp.stack([plain.q[-1], full.q[-1]]))
     assert end.status.tolist() == [0, 0, gj.Status.INVALID_INPUT] and bool(jnp.isnan(end.q[2, -1]).all())
+    count = lambda n, **kw: gj.integrate(H, q0, p0, method=method, h=0.01, n_steps=n, **kw).q
+    with pytest.raises(TypeError, match="integer scalar"):
+        jax.jit(lambda n: count(n, max_steps=200))(120.0)
+    with pytest.raises(ValueError, match="needs max_steps"):
+        jax.jit(count)(120)
 
 
 _CACHED_RUN = """
