@@ -312,7 +312,7 @@ def _forward(spec, inputs, keep):
         every = spec.stretch(dict(z=z0, Z=inputs["method"].initial_guess(*jnp.split(z0, 2)), t=z0[0], acc=acc0))
     controller = inputs["controller"] if spec.transform is None else spec.transform
     c = _adaptive.run(inputs["method"], fn, *jnp.split(z0, 2), inputs["t0"], inputs["t1"], inputs["h"], run_args,
-                      controller, options=spec.options, max_steps=spec.max_steps, ts=inputs["ts"], dense=spec.dense,
+                      controller, options=_options(spec, inputs), max_steps=spec.max_steps, ts=inputs["ts"], dense=spec.dense,
                       events=spec.events, estimate=spec.estimate, clock=clock, s=s, observe=spec.observe, acc0=acc0,
                       every=every, sigma=_sigma(inputs))
     return _outputs(c)
@@ -457,12 +457,20 @@ def _landed(spec, c, n):
     return keeps_state(c["status"]) & ~_terminated(spec, c) & (n == c["steps"] - 1)
 
 
+def _options(spec, inputs):
+    """The root finder's ``Options`` of the run: the spec's, with the tolerance's value where
+    the inputs carry one (``integrate``'s ``RunOptions.planned``: an input, so that the
+    derivative's sweeps, traced apart from the forward run, read it as theirs)."""
+    tolerance = inputs.get("tolerance")
+    return spec.options if tolerance is None else spec.options.with_tolerance(tolerance)
+
+
 def _resolve_options(spec, inputs):
     """The root finder's options for elements found again: the forward run's, less a
     controller's cap on matrices (an element found again from another predictor must not fail
     where it converged)."""
     controlled = inputs["controller"] is not None or spec.transform is not None
-    return dataclasses.replace(spec.options, varying_steps=False, short_lived_matrices=controlled)
+    return dataclasses.replace(_options(spec, inputs), varying_steps=False, short_lived_matrices=controlled)
 
 
 class _Element:

@@ -5,6 +5,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _adjoint, _checks, _inputs, _output, _reversible, _shape, _span
 from ._controllers import Event, Events, PIDController, TimeTransform
@@ -77,12 +78,29 @@ class Outputs:
 
 @pytree_dataclass
 class RunOptions:
-    """How the run computes (static): the root finder's ``Options``, the gradient's storage
-    (``checkpoint``, as ``integrate``'s) and the progress bar."""
+    """How the run computes: the root finder's ``Options``, the gradient's storage
+    (``checkpoint``, as ``integrate``'s) and the progress bar (static); ``tolerance``: the
+    stopping rule's ``SolverOptions.tolerance`` as a value (``planned``), or None where the
+    options hold it."""
 
     solver: object = dataclasses.field(default=None, **_STATIC)
     checkpoint: object = dataclasses.field(default=False, **_STATIC)
     progress: bool = dataclasses.field(default=False, **_STATIC)
+    tolerance: jax.Array = None
+
+    @classmethod
+    def planned(cls, options, dtype, checkpoint=False, progress=False):
+        """The run's options with ``SolverOptions.tolerance`` a value of the program, so that
+        another tolerance compiles nothing new; the reversible gradient (whose steps back are a
+        ``jax.custom_vjp`` with the options static) keeps it in the options."""
+        if checkpoint == _reversible.REVERSIBLE:
+            return cls(options, checkpoint, progress)
+        static = dataclasses.replace(options, solver=dataclasses.replace(options.solver, tolerance=0.0))
+        return cls(static, checkpoint, progress, tolerance=np.asarray(options.solver.tolerance, dtype))
+
+    def root_finder(self):
+        """The root finder's ``Options``, holding the tolerance's value where it is one."""
+        return self.solver if self.tolerance is None else self.solver.with_tolerance(self.tolerance)
 
 
 @pytree_dataclass
@@ -392,7 +410,7 @@ def integrate(
     run = Run(Problem(H, q0, p0, method, args, controller),
               Span(t0, t1, h, _output.Direction(sigma), n_steps=n_steps, max_steps=max_steps),
               Outputs(ts, events, nodes=nodes, save_every=save_every, dense=bool(dense), estimate=estimate),
-              RunOptions(options, checkpoint=checkpoint, progress=bool(progress)))
+              RunOptions.planned(options, q0.dtype, checkpoint=checkpoint, progress=bool(progress)))
     sol = _reversible.reverse_mode_only(_directed)(run) if checkpoint == _reversible.REVERSIBLE else _directed(run)
     if single:
         sol = dataclasses.replace(sol, events=sol.events[0])
@@ -528,7 +546,7 @@ def _integrate(run):
         return solution(final, saved, None, q0, p0, h, save_every, t0, t_end)
     final, saved, kept = march(
         method, H, q0, p0, h, args, n_blocks=n_steps // save_every, block_size=save_every,
-        options=options.solver, checkpoint=options.checkpoint, dense=outputs.dense, progress=options.progress,
+        options=options.root_finder(), checkpoint=options.checkpoint, dense=outputs.dense, progress=options.progress,
         estimate=outputs.estimate, h_last=h_last, n_active=n_active,
     )
     if n_active is not None:
@@ -561,7 +579,7 @@ def _integrate_adaptive(run):
                          dense=True if outputs.dense else ("nodes" if outputs.nodes else False), events=events,
                          estimate=outputs.estimate, checkpoint=options.checkpoint)
     inputs = dict(q0=q0, p0=p0, args=problem.args, method=problem.method, controller=None if transform else controller,
-                  t0=t0, t1=t1, ts=ts, h=span.h, direction=span.direction)
+                  t0=t0, t1=t1, ts=ts, h=span.h, direction=span.direction, tolerance=options.tolerance)
     c = _adjoint.run(spec, inputs)
     clock = None if transform is None else q0.shape[0]
     view = lambda z: _output.user_view(z, clock)

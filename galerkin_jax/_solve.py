@@ -254,6 +254,10 @@ class Options:
             a fixed point to go back to).
         settle: fixed-point updates, each from a fresh residual, that an element accepted by
             the fixed-point phase takes after its polish (the method's ``settle``, ``_settle``).
+        tolerance: ``SolverOptions.tolerance`` as a value of the program (``integrate``'s runs,
+            so that another tolerance compiles nothing new), or None: ``solver.tolerance``. Not
+            compared nor hashed: an ``Options`` that holds a value holds it in place of the
+            solver's, which its program's key normalises (``with_tolerance``).
     """
 
     solver: SolverOptions
@@ -261,6 +265,15 @@ class Options:
     varying_steps: bool = False
     short_lived_matrices: bool = False
     settle: int = 0
+    tolerance: object = dataclasses.field(default=None, compare=False)
+
+    def with_tolerance(self, value):
+        """These options with the tolerance ``value`` (traced) in place of ``solver.tolerance``."""
+        return dataclasses.replace(self, tolerance=value)
+
+    def tolerance_value(self):
+        """The stopping rule's tolerance: the value given (``with_tolerance``), else ``solver.tolerance``."""
+        return self.solver.tolerance if self.tolerance is None else self.tolerance
 
     @property
     def max_iterations(self):
@@ -365,6 +378,7 @@ class _Problem:
     fn: object  # (Z, params) -> R for one member
     params: object  # leading axis B
     scale: jax.Array  # (B,): the size of the state the unknowns are increments of
+    tolerance: jax.Array  # (B,): ``SolverOptions.tolerance`` (``Options.tolerance_value``)
     solver: SolverOptions
     newton: bool  # a Newton phase is there to ask for
     large: bool  # the Newton policy of a large system: n > ``small``, or ``Options.short_lived_matrices``
@@ -474,7 +488,7 @@ def _converged(problem, c, m):
     noisy = step <= problem.solver.noise * eps * (problem.scale + z_size)  # round-off, not a slow K
     grown = (step >= m["before"]) | (step >= c["step"])  # within the block, or since the last one
     # the error left after this update is below the round-off of the unknowns (or the tolerance)
-    limit = max(eps, problem.solver.tolerance)
+    limit = jnp.maximum(eps, problem.tolerance)
     strict = (step == 0) | error_left_below(step, theta, limit * z_size)
     # round-off that still shrinks, by less than half an update, past the member's patience
     settled = noisy & ~grown & (theta > 0.5) & m["patience"]
@@ -659,7 +673,8 @@ def _members(problem, which, capacity):
     B = which.shape[0]
     index = jnp.nonzero(which, size=capacity, fill_value=B)[0]
     take = lambda x: x[jnp.minimum(index, B - 1)]
-    return index, take, dataclasses.replace(problem, params=jax.tree.map(take, problem.params), scale=take(problem.scale))
+    return index, take, dataclasses.replace(problem, params=jax.tree.map(take, problem.params), scale=take(problem.scale),
+                                            tolerance=take(problem.tolerance))
 
 
 def _gathered(problem, c, which, capacity, solve):
@@ -782,7 +797,7 @@ def _start(problem, Z_pred, Z_alt, skip):
     return Z, r, r_size, jnp.isfinite(r_size)
 
 
-def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
+def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, tolerance, skip, first):
     """The iteration for a batch (every argument has a leading axis B); see the module docstring.
 
     Returns ``(Z, matrix, iterations, status, trips, lenient)``; ``trips`` counts the batch's
@@ -791,7 +806,7 @@ def _iterate(fn, options, params, Z_pred, Z_alt, matrix, scale, skip, first):
     B, n, dtype = Z_pred.shape[0], Z_pred[0].size, Z_pred.dtype
     solver = options.solver
     krylov = matrix.inverse is None and _krylov(options)
-    problem = _Problem(fn, params, scale, solver, matrix.inverse is not None or krylov,
+    problem = _Problem(fn, params, scale, tolerance, solver, matrix.inverse is not None or krylov,
                        n > solver.small or options.short_lived_matrices,
                        solver.attempt_matrices if options.varying_steps else None)
     Z, r, r_size, ok = _start(problem, Z_pred, Z_alt, skip)
@@ -897,8 +912,9 @@ def solve(fn, params, Z_pred, Z_alt, matrix, scale, skip, first, options):
         batch ran (its slowest member's), ``iterations`` this member's; ``lenient``: accepted
         other than at round-off (``_converged``).
     """
-    iterate = _batched(fn, options)
-    args = jax.lax.stop_gradient((params, Z_pred, Z_alt, matrix, scale, skip, jnp.asarray(first)))
+    iterate = _batched(fn, options.with_tolerance(None))  # the value is an argument, not a closure
+    tolerance = jnp.asarray(options.tolerance_value(), jnp.result_type(scale))
+    args = jax.lax.stop_gradient((params, Z_pred, Z_alt, matrix, scale, tolerance, skip, jnp.asarray(first)))
     expanded = jax.tree.map(lambda x: jnp.asarray(x)[None], args)
     Z, matrix, iterations, status, trips, lenient = jax.tree.map(lambda x: x[0], iterate(*expanded))
     Z = implicit(fn, options.solver.dense_limit, params, Z, (status == Status.SUCCESS) & ~skip)  # skipped: no root

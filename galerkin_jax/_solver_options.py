@@ -9,7 +9,8 @@ import numpy as np
 class SolverOptions:
     """The implicit solve's options: one frozen, hashable object (a static argument under
     ``jax.jit``), passed as ``solver=`` to ``step``, ``integrate``, ``sweep`` and
-    ``amplification_matrix``. ``max_newton_iterations=`` and ``krylov=`` there are shorthands
+    ``amplification_matrix``. ``integrate`` reads ``tolerance`` as a value of its program, so a
+    run with another tolerance compiles nothing new; another value of any other field does. ``max_newton_iterations=`` and ``krylov=`` there are shorthands
     for the first two fields (``solver_from``). Units: "unknowns" are the entries of one
     element's unknown Z (k * 2d for cG(k), (k + 1) * 2d for dG(k)); "iterations" are updates
     of Z; "elements" are time elements.

@@ -176,7 +176,8 @@ def _run(H, q0, p0, **kwargs):
 
 @pytest.mark.parametrize("case", ["method built anew", "other tolerances", "other t1", "other save_at",
                                   "other t1, time-transformed", "other t1, fixed steps reserved",
-                                  "other n_steps, reserved", "other h, fixed steps", "other state"])
+                                  "other n_steps, reserved", "other h, fixed steps", "other solver tolerance",
+                                  "other solver tolerance, PID", "other state"])
 def test_runs_that_differ_only_in_values_do_not_compile_again(case):
     H, q0, p0 = kepler(0.6)
     cg = lambda: gj.CG(4, gj.gauss_legendre(4))
@@ -196,6 +197,12 @@ def test_runs_that_differ_only_in_values_do_not_compile_again(case):
         "other n_steps, reserved": (dict(method=cg(), h=0.01, n_steps=120, max_steps=400),
                                     dict(method=cg(), h=0.01, n_steps=350, max_steps=400)),
         "other h, fixed steps": (dict(method=cg(), h=0.01, n_steps=50), dict(method=cg(), h=0.02, n_steps=50)),
+        "other solver tolerance": (dict(method=cg(), h=0.01, n_steps=50),
+                                   dict(method=cg(), h=0.01, n_steps=50, solver=gj.SolverOptions(tolerance=1e-8))),
+        "other solver tolerance, PID": (dict(method=cg(), h=0.01, t1=2.0, controller=pid(1e-8),
+                                             solver=gj.SolverOptions(tolerance=1e-10)),
+                                        dict(method=cg(), h=0.01, t1=2.0, controller=pid(1e-8),
+                                             solver=gj.SolverOptions(tolerance=1e-6))),
         "other state": (dict(method=cg(), h=0.01, n_steps=50), dict(method=cg(), h=0.01, n_steps=50)),
     }[case]
     COMPILATIONS.of(_run(H, q0, p0, **first))

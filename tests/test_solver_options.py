@@ -141,7 +141,7 @@ def measurements(**values):
 ])
 def test_the_stopping_rule_marks_acceptances_short_of_round_off(case, values, previous_r, accepted, lenient):
     """``_solve._converged``: which rule accepts, and whether ``num_accepted_stalled`` counts it."""
-    problem = type("P", (), {"scale": jnp.ones(1), "solver": gj.SolverOptions()})()
+    problem = type("P", (), {"scale": jnp.ones(1), "tolerance": jnp.zeros(1), "solver": gj.SolverOptions()})()
     c = {"step": jnp.asarray([values.get("before", 1e-20)]), "r_size": jnp.asarray([previous_r])}
     done, accept_here, is_lenient, _, _ = _solve._converged(problem, c, measurements(**values))
     if accepted is None:

@@ -334,7 +334,8 @@ def test_a_member_keeps_its_predictor_where_another_member_of_the_batch_is_doubt
 
     def start(params, Z_pred, Z_alt):
         B = Z_pred.shape[0]
-        problem = _solve._Problem(fn, params, jnp.ones(B), gj.SolverOptions(max_iterations=32), True, False)
+        problem = _solve._Problem(fn, params, jnp.ones(B), jnp.zeros(B), gj.SolverOptions(max_iterations=32), True,
+                                  False)
         return _solve._start(problem, Z_pred, Z_alt, jnp.zeros(B, bool))[0]
 
     alone = start((A[None], b[None]), Z_pred[None], Z_alt[None])
