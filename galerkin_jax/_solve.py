@@ -256,8 +256,8 @@ class Options:
             the fixed-point phase takes after its polish (the method's ``settle``, ``_settle``).
         tolerance: ``SolverOptions.tolerance`` as a value of the program (``integrate``'s runs,
             so that another tolerance compiles nothing new), or None: ``solver.tolerance``. Not
-            compared nor hashed: an ``Options`` that holds a value holds it in place of the
-            solver's, which its program's key normalises (``with_tolerance``).
+            compared nor hashed: a value stands in for the solver's, which the program's key
+            holds as 0 (``_integrate.RunOptions.planned``).
     """
 
     solver: SolverOptions
