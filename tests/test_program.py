@@ -6,6 +6,7 @@ A timing would be noisy; the size of the lowered program is not: lowering is det
 ``test_programs_stay_within_their_budget`` fails wherever a change bloats a standard program.
 """
 
+import dataclasses
 import os
 
 import jax
@@ -240,6 +241,8 @@ def test_a_sweep_to_another_t1_within_its_reserve_compiles_nothing_and_equals_th
     COMPILATIONS.of(lambda: run(1.005, max_steps=300).q)
     assert COMPILATIONS.of(lambda: run(2.5, max_steps=300).q) == 0
     np.testing.assert_allclose(run(2.5, max_steps=300).q, run(2.5).q, rtol=0, atol=1e-14)
+    traced = jax.jit(lambda h: gj.sweep(H, dataclasses.replace(configs, h=h), t1=2.5, max_steps=300).q)
+    np.testing.assert_allclose(traced(configs.h), run(2.5).q, rtol=0, atol=1e-14)  # traced step sizes
 
 
 def test_n_steps_within_a_reserve_equal_the_run_without_and_beyond_it_stop_with_max_steps():
