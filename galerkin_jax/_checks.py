@@ -62,14 +62,6 @@ def check_count(n_steps):
     return jnp.asarray(n_steps, jnp.int32)
 
 
-def check_reserve(max_steps, save_every):
-    """The elements a fixed-step run of n_steps reserves (``max_steps``): an integer >= 1, a
-    multiple of ``save_every``."""
-    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
-        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}.")
-    check_counts(max_steps, save_every, name="max_steps")
-
-
 def check_iterations(max_newton_iterations):
     value = max_newton_iterations
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:

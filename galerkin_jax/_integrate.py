@@ -464,7 +464,7 @@ def _dispatch(run):
             _checks.check_counts(n_steps, outputs.save_every)
             return fixed(span)
         # n_steps of max_steps reserved: the count is a value, so a new one reuses the program
-        _checks.check_reserve(max_steps, outputs.save_every)
+        _checks.check_counts(max_steps, outputs.save_every, name="max_steps")  # the reserve
         return fixed(dataclasses.replace(span, count=_checks.check_count(n_steps), n_steps=max_steps,
                                          max_steps=None))
     if n_steps is not None:
