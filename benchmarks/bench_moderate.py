@@ -102,13 +102,12 @@ def counts(status=0, steps=0, rejected=0, evaluations=0, iterations=0):
     return tuple(jnp.asarray(x).astype(jnp.int32) for x in (status, steps, rejected, evaluations, iterations))
 
 
-def evaluations(system, k, iterations, attempts):
+def evaluations(k, iterations, attempts):
     """galerkin_jax's field evaluations, counted from its iterations: k (one per Gauss point) per
-    residual, one residual per iteration and one per attempt (the start's). On states of more
-    than 8 degrees of freedom a residual is the Gauss-Seidel sweep's two halves, dH/dq and
-    dH/dp, two calls of H (counted by a callback at 8777906): for a separable H the dH/dp half
-    needs no gradient of V, so it counts once; for the chain each half is a gradient of H, twice."""
-    return k * (2 if system.V is None and system.q0.size > 8 else 1) * (iterations + attempts)
+    residual, one residual per iteration and one per attempt (the start's). On a separable H with
+    more than 8 degrees of freedom a residual is the Gauss-Seidel sweep's two halves, dH/dp and
+    dH/dq, which read T and V apart: one evaluation's work together."""
+    return k * (iterations + attempts)
 
 
 def fixed(method, count, solver=None):
@@ -132,7 +131,7 @@ def cg_fixed(k, tolerance=0.0, search=False):
     the element polynomials, which end there; its errors equal the static runs' to six digits,
     LJ13, cG(4), seven step counts checked)."""
     method, solver = gj.CG(k, gj.gauss_legendre(k)), gj.SolverOptions(tolerance=tolerance)
-    count = lambda system, it, steps: evaluations(system, k, it, steps)
+    count = lambda system, it, steps: evaluations(k, it, steps)
     if not search:
         return fixed(method, count, solver)
 
@@ -159,7 +158,7 @@ def cg_pid(k):
             sol = gj.integrate(system.H, q, p, method=method, h=h, t1=span, controller=gj.PIDController(tol, tol),
                                max_steps=MAX_STEPS, error_estimate=False)
             steps, rejected, it = (sol.stats[f"num_{x}"] for x in ("accepted_steps", "rejected_steps", "newton_iterations"))
-            count = evaluations(system, k, it, steps + rejected) + steps + rejected
+            count = evaluations(k, it, steps + rejected) + steps + rejected
             return sol.q[-1], sol.p[-1], span / jnp.maximum(steps, 1), counts(sol.status, steps, rejected, count, it)
 
         return segments(step_segment, q0, p0, jnp.asarray(1e-3 * span, q0.dtype))

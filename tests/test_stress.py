@@ -39,11 +39,27 @@ def nonseparable(q, p):
     return 0.5 * (p @ p) * (1.0 + q @ q) + 0.5 * (q @ q)
 
 
+def pendulum_chain(n=10):
+    """The planar n-link pendulum (unit masses and rods, g = 1) in its links' angles:
+    H = p^T M(q)^-1 p / 2 + V(q), M_jk = (n - max(j, k)) cos(q_j - q_k). Not separable, and each
+    partial gradient of H runs through the solve with M."""
+    below = n - np.arange(n)
+    weight = jnp.asarray(np.minimum.outer(below, below).astype(float))
+
+    def H(q, p):
+        M = weight * jnp.cos(q[:, None] - q[None, :])
+        return 0.5 * p @ jnp.linalg.solve(M, p) + jnp.sum(jnp.asarray(below) * (1.0 - jnp.cos(q)))
+
+    rng = np.random.default_rng(2)
+    return H, rng.uniform(-1.0, 1.0, n), rng.normal(size=n)
+
+
 QUARTIC = scenes.quartic().H
 HIGH = (np.array([1.0, 0.0, 0.0]), np.array([100.0, 70.99, 94.66]))  # the quartic force at high momentum
 KEPLER_95 = scenes.kepler(0.95)
 PERICENTRE = (np.asarray(KEPLER_95.q0), np.asarray(KEPLER_95.p0))  # |q| = 0.05, |p| = 6.2
 FPUT = scenes.fput(16)
+CHAIN = pendulum_chain()
 G2, L2, G3 = gj.gauss_legendre(2), gj.gauss_lobatto(2), gj.gauss_legendre(3)
 
 # name: (H, q0, p0, method, h, solver keywords)
@@ -72,6 +88,9 @@ CASES = {
                                         gj.DG(1, G2), 0.3, {}),
     "non-separable H, DiscreteGradient": (nonseparable, np.array([1.5, -1.0]), np.array([2.0, 1.0]),
                                          gj.DiscreteGradient(), 0.3, {}),
+    "pendulum chain of 10 links h = 0.5, cG(3) + Gauss 3": (*CHAIN, gj.CG(3, G3), 0.5, {}),
+    "pendulum chain of 10 links h = 0.5, GalerkinVI(2) + Gauss 2": (*CHAIN, gj.GalerkinVI(2, G2), 0.5, {}),
+    "pendulum chain of 10 links h = 0.25, cG(3) + Gauss 3": (*CHAIN, gj.CG(3, G3), 0.25, {}),
     "FPUT N = 16 at 10x momenta h = 0.5, cG(2) + Gauss 2 (fixed point first)": (
         FPUT.H, FPUT.q0, 10 * FPUT.p0, gj.CG(2, G2), 0.5, {}),
     "FPUT N = 16 at 10x momenta h = 0.5, GalerkinVI(2) + Gauss 2 (fixed point first)": (
@@ -131,7 +150,16 @@ def compare(name):
     return plain, ours, difference, status
 
 
-@pytest.mark.parametrize("name", list(CASES))
+# Cases over the bound, each with its measured reason: a strict xfail, so that one brought within it fails here.
+OVER_BOUND = {
+    "pendulum chain of 10 links h = 0.25, cG(3) + Gauss 3": (
+        "26 updates against plain Newton's 5 (20 with the Gauss-Seidel sweep, which a non-separable H no longer "
+        "takes): the fixed point uses up its patience for a large system (24 updates) before Newton's two"),
+}
+
+
+@pytest.mark.parametrize("name", [pytest.param(name, marks=pytest.mark.xfail(strict=True, reason=OVER_BOUND[name]))
+                                  if name in OVER_BOUND else name for name in CASES])
 def test_hard_first_element_reaches_plain_newtons_root_within_a_small_multiple_of_its_iterations(name):
     """Status 0 at the default cap (48), the root of plain Newton to within 100 eps of the
     state (measured at most 11 eps: the two iterations stop at different round-off; a different
