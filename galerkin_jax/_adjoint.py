@@ -355,7 +355,7 @@ def _element(spec, fn, theta, z, h, Z):
     if explicit_here(method, spec):  # the closed form, differentiated as it is (``_explicit``)
         Z, dz, _ = method.explicit(H_bound, q, p, h, method.explicit_start(H_bound, q, p))
     else:
-        residual = element_residual(fn, spec.options.solver)
+        residual = element_residual(fn, spec.options.solver.sweep_dimension)
         Z = implicit(residual, spec.options.solver.dense_limit, (method, q, p, h, args), Z, jnp.ones((), bool))
         dz = method.increment(H_bound, q, p, Z, h)
     dz = jnp.concatenate(dz)

@@ -27,7 +27,7 @@ import numpy as np
 
 from ._method import AbstractMethod
 from ._pytree import pytree_dataclass
-from ._structure import Structure, half_gradient_cost, structure
+from ._structure import Structure, structure
 
 
 @pytree_dataclass
@@ -172,8 +172,7 @@ def _program(H, q0, p0, args):
         return None
 
 
-# what was read from programs so far, oldest first: (the reader, H, state and args' shapes and dtypes, H's program)
-# -> its answer (a Structure, a cost)
+# structures read so far, oldest first: (H, state and args' shapes and dtypes, H's program) -> Structure
 _STRUCTURES = {}
 _KEPT = 256
 
@@ -182,25 +181,16 @@ def cached_structure(H, q0, p0, args=None):
     """``structure(H, q0, p0, args)``, read once per H, state shapes and dtypes, args' structure
     and H's program (it reads nothing else), so that a loop of ``step`` calls traces H but not
     its gradient at every call. An H that cannot be hashed or traced is read anew."""
-    return _cached(structure, H, q0, p0, args)
-
-
-def cached_half_gradient_cost(H, q0, p0, args=None):
-    """``half_gradient_cost(H, q0, p0, args)``, read once as ``cached_structure`` is."""
-    return _cached(half_gradient_cost, H, q0, p0, args)
-
-
-def _cached(read, H, q0, p0, args):
     program = _program(H, q0, p0, args)
     try:
-        key = (read, H, shape_spec(q0), shape_spec(p0), None if args is None else shape_spec(args), program)
+        key = (H, shape_spec(q0), shape_spec(p0), None if args is None else shape_spec(args), program)
         found = None if program is None else _STRUCTURES.get(key)
     except TypeError:
-        return read(H, q0, p0, args)
+        return structure(H, q0, p0, args)
     if found is None:
         if len(_STRUCTURES) >= _KEPT:
             _STRUCTURES.pop(next(iter(_STRUCTURES)))
-        found = _STRUCTURES[key] = read(H, q0, p0, args)
+        found = _STRUCTURES[key] = structure(H, q0, p0, args)
     return found
 
 

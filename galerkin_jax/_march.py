@@ -23,7 +23,7 @@ import jax.numpy as jnp
 
 from . import _output, _progress
 from ._controllers import embedded_error
-from ._explicit import cached_half_gradient_cost, is_explicit, shape_spec
+from ._explicit import cached_structure, is_explicit, shape_spec
 from ._solve import (Options, SolverOptions, Status, accuracy_status, initial_matrix, keeps_state, relative_error,
                      solve, solver_from)
 
@@ -84,34 +84,32 @@ def nan_if_failed(x, status):
     return jnp.where(failed, jnp.nan, x)
 
 
-def element_residual(H, solver=SolverOptions()):
+def element_residual(H, sweep_dimension=SolverOptions.sweep_dimension):
     """``(Z, params) -> R``, the element equations with everything they depend on in ``params``.
 
     A partitioned method (unknowns q | p along its ``partition_axis``, and a ``residual(...,
-    part=)`` of either half) with a fixed point, on a state of more than
-    ``solver.sweep_dimension`` degrees of freedom, is solved through the residual of its
-    Gauss-Seidel sweep, ``R~ = Z - G(Z)``, where H's two partial gradients computed apart cost
-    at most ``solver.sweep_cost`` times its gradient (``_structure.half_gradient_cost``): G
-    first updates the p half from R_p(Z), then the q half from R_q at that update. R~ has R's
-    roots, and for a separable H, T(p) + V(q), its fixed-point iteration ``Z <- G(Z)``
-    contracts at the square of the rate of ``Z <- Z - R(Z)``: two of its updates in one, for
-    the arithmetic of one, since each half reads one of T and V. Small states keep R: their
-    cost is the loop's kernels, which the sweep's two half-residuals raise more than its rate
-    saves. So does an H whose partial gradients each run through all of it (a mass matrix
-    M(q), a network on the joined state): an update of the sweep costs two plain ones there,
-    and saves few.
+    part=)`` of either half) with a fixed point, on a separable H (``gj.structure``) of more
+    than ``sweep_dimension`` degrees of freedom (``SolverOptions.sweep_dimension``), is solved
+    through the residual of its Gauss-Seidel sweep, ``R~ = Z - G(Z)``: G first updates the p
+    half from R_p(Z), then the q half from R_q at that update. R~ has R's roots, and its
+    fixed-point iteration ``Z <- G(Z)`` contracts at the square of the rate of ``Z <- Z - R(Z)``:
+    for H = T(p) + V(q) two of its updates in one, for the arithmetic of one, since each half
+    reads one of T and V. Small states keep R: their cost is the loop's kernels, which the
+    sweep's two half-residuals raise more than its rate saves. So does an H that is not
+    separable (or whose structure cannot be read): the square rate is not its, and where each
+    half's gradient runs through all of H an update of the sweep costs two plain ones.
     """
-    sweeps_here = {}  # per state and args' shapes and dtypes: read once per trace
+    separable = {}  # per state and args' shapes and dtypes: read once per trace
 
     def sweeps(method, q0, p0, args):
         if getattr(method, "partition_axis", None) is None or not method.fixed_point:
             return False
-        if q0.shape[0] <= solver.sweep_dimension:
+        if q0.shape[0] <= sweep_dimension:
             return False
         key = shape_spec((q0, p0, args))
-        if key not in sweeps_here:
-            sweeps_here[key] = cached_half_gradient_cost(H, q0, p0, args) <= solver.sweep_cost
-        return sweeps_here[key]
+        if key not in separable:
+            separable[key] = cached_structure(H, q0, p0, args).separable
+        return separable[key]
 
     def fn(Z, params):
         method, q0, p0, h, args = params
@@ -196,7 +194,7 @@ def element(method, H, q, p, h, args, options, *, predicted=None, constant=None,
     matrix = initial_matrix(predicted, options) if matrix is None else matrix
     scale = state_scale(jnp.concatenate([q, p])) if scale is None else scale
     Z, matrix, iterations, status, trips, lenient = solve(
-        element_residual(H, options.solver), (method, q, p, h, args), predicted, constant, matrix,
+        element_residual(H, options.solver.sweep_dimension), (method, q, p, h, args), predicted, constant, matrix,
         scale, skip, first, options)
     dz = jnp.concatenate(method.increment(H_bound, q, p, Z, h))
     return Element(Z, dz, None, matrix, iterations, status, trips, lenient)

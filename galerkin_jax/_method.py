@@ -52,10 +52,9 @@ class AbstractMethod(abc.ABC):
             concatenation of a q half and a p half of equal shape; then ``residual(...,
             part="q")`` and ``part="p"`` must return the equations of each half alone (those
             whose ``h = 0`` Jacobian is the identity on that half). A method with a fixed
-            point on a state of more than ``SolverOptions.sweep_dimension`` (8) degrees of freedom
-            is then solved through the Gauss-Seidel sweep of the two halves, which contracts
-            at the square of the plain rate, where H's partial gradients cost about one
-            gradient (``SolverOptions.sweep_cost``, ``_march.element_residual``).
+            point on a separable H of more than ``SolverOptions.sweep_dimension`` (8) degrees of
+            freedom is then solved through the Gauss-Seidel sweep of the two halves, which
+            contracts at the square of the plain rate (``_march.element_residual``).
         settle: a Python int, 0 by default: the fixed-point updates, one residual each, that
             an element the fixed-point iteration accepted takes after its polish. The stopping
             rule leaves an iteration error below the round-off of ``Z`` that follows the

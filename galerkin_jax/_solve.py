@@ -17,10 +17,9 @@ the fields of ``SolverOptions`` (named in parentheses), each with its unit and r
   ``theta_fixed_point``, or when its patience is used up (``fixed_point_patience``, at most
   half the cap, so that Newton is always reached).
   A large batch iterates its stragglers (``stragglers``) gathered apart.
-  Partitioned methods on states of more than ``sweep_dimension`` degrees of freedom, where H's
-  partial gradients cost about one gradient (``sweep_cost``), hand this solver the residual of
-  their Gauss-Seidel sweep (``_march.element_residual``), whose fixed point contracts at the
-  square of the plain one's rate (for a separable H).
+  Partitioned methods on a separable H of more than ``sweep_dimension`` degrees of freedom hand
+  this solver the residual of their Gauss-Seidel sweep (``_march.element_residual``), whose
+  fixed point contracts at the square of the plain one's rate.
   A method whose residual's Jacobian at h = 0 is not I (dG(k >= 1)) has no fixed point and
   solves every element by Newton.
 * The Newton phase: ``K`` the inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and

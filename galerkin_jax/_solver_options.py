@@ -48,16 +48,10 @@ class SolverOptions:
             and in a time-transformed run (its matrices serve few elements:
             ``_solve.Options.short_lived_matrices``) only the first.
         sweep_dimension: the number of degrees of freedom d above which partitioned methods
-            may iterate the Gauss-Seidel sweep's residual (``_march.element_residual``); default
-            8. The sweep contracts at the square of the plain fixed point's rate on a separable
-            H; below it the sweep's two half-residuals cost more than its rate saves.
-        sweep_cost: the largest work of H's two partial gradients computed apart, relative to
-            its gradient computed at once (``_structure.half_gradient_cost``, read from H's
-            program), at which they take the sweep; default 1.25. A separable H costs 1, and so
-            about does one with a cheap coupling term, where the sweep still saves a third of
-            the updates or more; where each partial gradient runs through all of H (a mass
-            matrix M(q), a network on the joined state: 1.4-2) an update of the sweep costs
-            about two plain ones and saves few.
+            iterate the Gauss-Seidel sweep's residual on a separable H
+            (``_march.element_residual``); default 8. The sweep contracts at the square of the
+            plain fixed point's rate there; below it the sweep's two half-residuals cost more
+            than its rate saves. Any other H keeps the plain residual.
         theta_fixed_point: the rate (shrink factor per update) above which a fixed-point member
             switches to Newton; default 0.5.
         theta_newton: the rates above which a Newton member refreshes its matrix, for small and
@@ -125,7 +119,6 @@ class SolverOptions:
     dense_limit: int = 256
     small: int = 32
     sweep_dimension: int = 8
-    sweep_cost: float = 1.25
     theta_fixed_point: float = 0.5
     theta_newton: tuple = (0.03, 0.25)
     patience: int = 8
@@ -160,7 +153,7 @@ class SolverOptions:
         for name in ("fixed_point_patience", "miss_orders"):
             for value in getattr(self, name):
                 _check_count(name, value, 1)
-        for name in ("noise", "sweep_cost", "theta_fixed_point", "min_damping", "doubtful_start", "krylov_tolerance") + (
+        for name in ("noise", "theta_fixed_point", "min_damping", "doubtful_start", "krylov_tolerance") + (
                 "theta_newton",):
             values = getattr(self, name) if name == "theta_newton" else (getattr(self, name),)
             if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in values):

@@ -11,11 +11,9 @@ effects (``io_callback``, mutable references) is not analysed: general.
 """
 
 import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
-from jax.interpreters import partial_eval as pe
 from jax.extend import core as jcore
 
 _Q, _P = 1, 2  # dependency bits: on q, on p (args and constants: none)
@@ -170,40 +168,3 @@ def _constant_in_p(H, operands, n_q, n_p):
         return not any(_outputs_read(jax.make_jaxpr(hessian)(*operands), n_q, n_p))
     except Exception:  # noqa: BLE001 -- what cannot be traced or read (effects) is not constant
         return False
-
-
-def _size(jaxpr):
-    """The elements of every value a program computes, its inner programs followed: a measure of
-    its work that needs no compilation."""
-    total = 0
-    for eqn in jaxpr.eqns:
-        inner = [p.jaxpr if isinstance(p, jcore.ClosedJaxpr) else p for p in eqn.params.values()
-                 if isinstance(p, (jcore.ClosedJaxpr, jcore.Jaxpr))]
-        if inner:
-            total += sum(_size(j) for j in inner)
-        else:
-            total += sum(math.prod(getattr(v.aval, "shape", ())) for v in eqn.outvars)
-    return total
-
-
-def half_gradient_cost(H, q0, p0, args=None):
-    """The work of dH/dq and dH/dp computed apart, over that of DH computed at once: 1 where the
-    two share nothing (a separable H, T(p) + V(q)), about 2 where each runs through all of H (a
-    mass matrix M(q) in p^T M(q)^-1 p / 2, a network on the joined state), and in between for a
-    separable H with a cheap coupling term. Work is the number of elements the programs compute
-    (``_size``, after dead-code elimination), read from H's program at the shapes and dtypes
-    given; inf where it cannot be traced."""
-    shape = lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
-    f = H if args is None else (lambda q, p, a: H(q, p, a))
-    operands = (q0, p0) if args is None else (q0, p0, args)
-    operands = jax.tree.map(shape, operands)
-
-    def work(argnums):
-        closed = jax.make_jaxpr(jax.grad(f, argnums=argnums))(*operands)
-        return _size(pe.dce_jaxpr(closed.jaxpr, [True] * len(closed.jaxpr.outvars))[0])
-
-    try:
-        whole = work((0, 1))
-        return (work(0) + work(1)) / whole if whole else 1.0
-    except Exception:  # noqa: BLE001 -- what cannot be traced cannot be read: no sweep
-        return math.inf
