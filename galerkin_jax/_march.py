@@ -102,9 +102,8 @@ def element_residual(H, sweep_dimension=SolverOptions.sweep_dimension):
     separable = {}  # per state and args' shapes and dtypes: read once per trace
 
     def sweeps(method, q0, p0, args):
-        if getattr(method, "partition_axis", None) is None or not method.fixed_point:
-            return False
-        if q0.shape[0] <= sweep_dimension:
+        partitioned = getattr(method, "partition_axis", None) is not None and method.fixed_point
+        if not partitioned or q0.shape[0] <= sweep_dimension:
             return False
         key = shape_spec((q0, p0, args))
         if key not in separable:

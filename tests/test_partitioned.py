@@ -69,17 +69,22 @@ HAMILTONIANS = {  # name: (H, whether the solver is handed the sweep)
     "scalar mass m(q)": (lambda q, p: 0.5 * (p @ p) / (1.0 + 0.25 * (q @ q)) + V_CHAIN(q), False),
     "mass matrix M(q)": (lambda q, p: 0.5 * p @ jnp.linalg.solve(MASS(q), p) + V_CHAIN(q), False),
 }
+ONE_OF_EACH = (METHODS[1], METHODS[3], METHODS[4])  # CG(3) + Gauss 3, DG(0), GalerkinVI(2)
+
+
+def start(n=20):
+    """A generator and the start state (q0, p0) it drew, n degrees of freedom."""
+    rng = np.random.default_rng(5)
+    return rng, jnp.asarray(rng.normal(size=n)), jnp.asarray(rng.normal(size=n))
 
 
 @pytest.mark.parametrize("kind", HAMILTONIANS)
 def test_the_sweep_is_taken_for_a_separable_H_alone(kind):
     """On 20 degrees of freedom, for every partitioned method class: a separable H is handed the
     sweep's R~ (not R), any other keeps R itself (the same array, to the bit)."""
-    n, (H, sweeps) = 20, HAMILTONIANS[kind]
-    rng = np.random.default_rng(5)
-    q0, p0 = jnp.asarray(rng.normal(size=n)), jnp.asarray(rng.normal(size=n))
+    (H, sweeps), (rng, q0, p0) = HAMILTONIANS[kind], start()
     assert gj.structure(H, q0, p0).separable is sweeps
-    for method in (METHODS[1], METHODS[3], METHODS[4]):  # CG(3) + Gauss 3, DG(0), GalerkinVI(2)
+    for method in ONE_OF_EACH:
         Z = jnp.asarray(rng.normal(size=method.initial_guess(q0, p0).shape)) * 0.01
         handed = _march.element_residual(H)(Z, (method, q0, p0, 0.1, None))
         assert bool(jnp.array_equal(handed, method.residual(H, q0, p0, Z, 0.1))) is not sweeps
@@ -90,11 +95,9 @@ def test_a_step_is_newtons_root_with_either_residual(kind):
     """A step, through the sweep (separable) or R itself (the mass matrix), is the root of
     Newton's method on R, to a few ulps of the state. One method of each class: CG(1), CG(2)
     and CG(3) share their equations whatever the rule."""
-    n, (H, _) = 20, HAMILTONIANS[kind]
-    rng = np.random.default_rng(5)
-    q0, p0 = jnp.asarray(rng.normal(size=n)), jnp.asarray(rng.normal(size=n))
+    (H, _), (_, q0, p0) = HAMILTONIANS[kind], start()
     h = 0.1
-    for method in (METHODS[1], METHODS[3], METHODS[4]):
+    for method in ONE_OF_EACH:
         shape = method.initial_guess(q0, p0).shape
         R = lambda z: method.residual(H, q0, p0, z.reshape(shape), h).reshape(-1)
 
