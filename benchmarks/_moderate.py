@@ -24,6 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
+from galerkin_jax import scenes
+
 
 @dataclasses.dataclass(frozen=True)
 class System:
@@ -216,27 +218,16 @@ def _directions(rng, n):
 
 
 def pendulum_chain(n, angle=0.5, T=20.0, seed=0):
-    """The planar ``n``-link pendulum: unit point masses on massless rods of unit length, g = 1,
-    in the links' angles theta_j from the downward vertical. With x_i = sum_{j <= i}
-    (sin theta_j, -cos theta_j), the kinetic energy is theta'^T M(theta) theta' / 2 with
-    M_jk = cos(theta_j - theta_k) (n - max(j, k)) (0-based: the masses at or below link max(j, k)),
-    so H = p^T M(q)^-1 p / 2 + V(q), V = sum_j (n - j) (1 - cos theta_j): the energy above the
-    hanging rest state, which is > 0. H is not separable (M depends on q), so no explicit
-    symplectic splitting applies. The start: at rest, each link at an angle drawn uniformly
-    from [-angle, angle] (seed)."""
-    below = n - np.arange(n)
-    weight = jnp.asarray(np.minimum.outer(below, below).astype(float))  # n - max(j, k)
-
-    def H(q, p):
-        M = weight * jnp.cos(q[:, None] - q[None, :])
-        return 0.5 * p @ jnp.linalg.solve(M, p) + jnp.sum(jnp.asarray(below) * (1.0 - jnp.cos(q)))
-
-    q0 = np.random.default_rng(seed).uniform(-angle, angle, n)
-    p0 = np.zeros(n)
-    energy = float(H(jnp.asarray(q0), jnp.asarray(p0)))
+    """The planar ``n``-link pendulum (``scenes.pendulum_chain``), at rest with each link at an
+    angle drawn uniformly from [-angle, angle] (seed). Its H, the energy above the hanging rest
+    state, is > 0, and is not separable (M depends on q), so no explicit symplectic splitting
+    applies."""
+    scene = scenes.pendulum_chain(n, angle=angle, seed=seed)
+    energy = float(scene.H(jnp.asarray(scene.q0), jnp.asarray(scene.p0)))
     description = (f"planar {n}-link pendulum (unit masses and lengths, g = 1), non-separable, at rest with angles "
                    f"uniform in [-{angle:g}, {angle:g}] (seed {seed}), H = {energy:.4f} above rest, span {T:g}")
-    return System(f"Chain{n}", description, H, q0, p0, T, facts=dict(links=n, angle=angle, seed=seed, energy=energy))
+    return System(f"Chain{n}", description, scene.H, scene.q0, scene.p0, T,
+                  facts=dict(links=n, angle=angle, seed=seed, energy=energy))
 
 
 def learned(width=32, dim=2, scale=0.3, T=20.0, seed=0):

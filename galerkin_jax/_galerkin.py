@@ -19,6 +19,12 @@ from ._method import degree_and_rule
 from ._pytree import pytree_dataclass
 
 
+def _trial_basis(alpha, n, antiderivative):
+    """z^h - z_0 at the points ``alpha`` per unknown: the Legendre antiderivatives (cG, whose
+    unknowns are coefficients of z') or the Legendre polynomials (dG); shape ``(m, n)``."""
+    return _basis.legendre_antiderivatives(alpha, n) if antiderivative else _basis.legendre_values(alpha, n)
+
+
 def tested_field(H, quadrature, q0, p0, C, antiderivative, n_test, part=None):
     """(2i + 1) sum_l w_l P_i(alpha_l) J DH(z^h(alpha_l)), i < n_test: the DH integrals of eqs. (16), (19).
 
@@ -29,13 +35,38 @@ def tested_field(H, quadrature, q0, p0, C, antiderivative, n_test, part=None):
     dtype, d = C.dtype, q0.shape[0]
     alpha = jnp.asarray(quadrature.points, dtype)
     w = jnp.asarray(quadrature.weights, dtype)
-    basis = _basis.legendre_antiderivatives(alpha, len(C)) if antiderivative else _basis.legendre_values(alpha, len(C))
+    basis = _trial_basis(alpha, len(C), antiderivative)
     # q and p at the points from C's column halves: where C is a concatenate of halves (the
     # sweep), XLA then reads them directly instead of copying them together and apart
     at_points = lambda x0, X: x0[None, :] + _basis.combine(basis, X)
     field = jax.vmap(hamilton_field(H, part))(at_points(q0, C[:, :d]), at_points(p0, C[:, d:]))
     scale = jnp.asarray(_basis.test_scale(n_test), dtype)
     return scale[:, None] * _basis.combine(_basis.legendre_values(alpha, n_test).T, w[:, None] * field)
+
+
+def galerkin_jacobian(H, quadrature, q0, p0, Z, h, antiderivative, n_test, linear):
+    """dR/dZ of R(Z) = ``linear`` Z - h ``tested_field(...)`` (eqs. (16), (19)), flat in Z's C
+    order: ``linear`` (x) I - h sum_l G_il basis_lj (x) J_l, with G_il = (2i + 1) w_l P_i(alpha_l)
+    and J_l the field's Jacobian d(J DH)/dz at z^h(alpha_l).
+
+    The Jacobians at the m points take 2d tangents of the field at each; the Jacobian of R by its
+    own tangents takes one per unknown, k times as many, each through all m points. Exact: the
+    same matrix to round-off.
+    """
+    dtype, d, n = Z.dtype, q0.shape[0], len(Z)
+    alpha = jnp.asarray(quadrature.points, dtype)
+    w = jnp.asarray(quadrature.weights, dtype)
+    basis = _trial_basis(alpha, n, antiderivative)
+    points = jnp.concatenate([q0, p0])[None, :] + basis @ Z
+    field = hamilton_field(H)
+    J = jax.vmap(jax.jacfwd(lambda z: field(z[:d], z[d:])))(points)  # (m, 2d, 2d)
+    G = jnp.asarray(_basis.test_scale(n_test), dtype)[:, None] * _basis.legendre_values(alpha, n_test).T * w[None, :]
+    # [i, a, j, b], a sum over the points of broadcast products: one fused loop, where an einsum
+    # is a dot and a transpose, kernels of their own
+    total = jnp.asarray(linear, dtype)[:, None, :, None] * jnp.eye(2 * d, dtype=dtype)[None, :, None, :]
+    for l in range(len(alpha)):
+        total = total - h * (G[:, l, None] * basis[l, None, :])[:, None, :, None] * J[l][None, :, None, :]
+    return total.reshape(n * 2 * d, n * 2 * d)
 
 
 def _columns(Z, d, part):
@@ -79,6 +110,10 @@ class CG(degree_and_rule("k", least=1)):
         """R(C) = 0 is eq. (16) tested with (2i + 1) P_i, i < k: C_i - h (2i+1) Q[P_i J DH(z^h)];
         ``part`` "q" or "p": the equations of that half of the columns alone."""
         return _columns(C, q0.shape[0], part) - h * tested_field(H, self.quadrature, q0, p0, C, True, self.k, part)
+
+    def jacobian(self, H, q0, p0, C, h):
+        """dR/dC, flat (``galerkin_jacobian``): I - h sum_l G_l (x) J(z^h(alpha_l))."""
+        return galerkin_jacobian(H, self.quadrature, q0, p0, C, h, True, self.k, np.eye(self.k))
 
     def increment(self, H, q0, p0, C, h):
         """z_1 - z_0 = z^h(1) - z_0 = C_0, split into (dq, dp)."""
@@ -132,6 +167,14 @@ class DG(degree_and_rule("k", least=0)):
         tested_jump = jnp.asarray(_basis.test_scale(n), dtype) * signs
         field = tested_field(H, self.quadrature, q0, p0, a, False, n, part)
         return derivative + tested_jump[:, None] * jump[None, :] - h * field
+
+    def jacobian(self, H, q0, p0, a, h):
+        """dR/da, flat (``galerkin_jacobian``): the derivative and jump terms' constant matrix,
+        less h sum_l G_l (x) J(z^h(alpha_l))."""
+        n = self.k + 1
+        signs = (-1.0) ** np.arange(n)
+        linear = _basis.derivative_matrix(n) + np.outer(_basis.test_scale(n) * signs, signs)
+        return galerkin_jacobian(H, self.quadrature, q0, p0, a, h, False, n, linear)
 
     def increment(self, H, q0, p0, a, h):
         """z_1 - z_0 = z^h(1) - z_0 = sum_j a_j, split into (dq, dp)."""

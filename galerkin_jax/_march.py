@@ -121,7 +121,23 @@ def element_residual(H, sweep_dimension=SolverOptions.sweep_dimension):
         r_q = method.residual(H_bound, q0, p0, jnp.concatenate([Z_q, Z_p - r_p], axis=axis), h, part="q")
         return jnp.concatenate([r_q, r_p], axis=axis)
 
+    def jacobian(Z, params):
+        """dR/dZ flat, from the method's element structure (its optional ``jacobian``), or None:
+        where it has none, where a subclass redefines ``residual`` and not ``jacobian``, or where
+        ``fn`` is the sweep's R~. The root finder and the implicit function theorem then take
+        R's Jacobian by its own tangents."""
+        method, q0, p0, h, args = params
+        if _defined_by(method, "jacobian") is not _defined_by(method, "residual") or sweeps(method, q0, p0, args):
+            return None
+        return method.jacobian(bind_args(H, args), q0, p0, Z, h)
+
+    fn.jacobian = jacobian
     return fn
+
+
+def _defined_by(method, name):
+    """The class of ``method`` whose body defines ``name``, or None."""
+    return next((cls for cls in type(method).__mro__ if name in vars(cls)), None)
 
 
 def state_scale(z):

@@ -24,9 +24,11 @@ the fields of ``SolverOptions`` (named in parentheses), each with its unit and r
   solves every element by Newton.
 * The Newton phase: ``K`` the inverse of a Jacobian ``dR/dZ`` taken at an earlier iterate and
   kept across elements (the simplified Newton method, as in Hairer and Wanner's Radau5), one
-  checked update at a time. A member refreshes its matrix when it contracts slower than
-  ``theta_newton``, when it has iterated ``patience`` times with it in one element, or when an
-  update goes astray (the update is rejected). Far from the root (a first element, a
+  checked update at a time. The Jacobian comes from the element's structure where the method
+  has one (cG, dG: Hamilton's field's Jacobian at the quadrature points,
+  ``_galerkin.galerkin_jacobian``), else from one tangent of R per unknown. A member refreshes
+  its matrix when it contracts slower than ``theta_newton``, when it has iterated ``patience``
+  times with it in one element, or when an update goes astray (the update is rejected). Far from the root (a first element, a
   large h omega) the steps follow Newton with a fresh matrix: a full step that does not lower
   the residual is taken anyway, and so are the fresh steps after it while the residual comes
   back below where it started (the watchdog, ``watch``, in an element whose predictor is the
@@ -403,6 +405,12 @@ class _Problem:
     def residual(self, Z):
         return self._residual(Z, self.params)
 
+    def jacobians(self, Z):
+        """dR/dZ of every member, ``(B, n, n)``: from the element's structure where the
+        equations carry one (``_tangent.structured_jacobian``), else ``block_jacobians``."""
+        J = jax.vmap(functools.partial(_tangent.structured_jacobian, self.fn))(self.params, Z)
+        return block_jacobians(self.residual, Z) if J is None else J
+
     def newton_krylov(self, Z, r):
         """``dR/dZ(Z)^{-1} r`` per member, by restarted GMRES on Jacobian-vector products: the
         Newton direction of a system too large for a dense matrix, at the cost of a few
@@ -709,7 +717,7 @@ def _refresh(problem, c, inverse, reference):
     def refreshed(c, inverse, reference):
         c, reference = _rewind(c, reference)
         index, take, sub = _members(problem, c["asked"], capacity)
-        inverse = inverse.at[index].set(jnp.linalg.inv(block_jacobians(sub.residual, take(c["Z"]))), mode="drop")
+        inverse = inverse.at[index].set(jnp.linalg.inv(sub.jacobians(take(c["Z"]))), mode="drop")
         return _served(c, jnp.zeros(B, bool).at[index].set(True, mode="drop")), inverse, reference
 
     return jax.lax.cond(jnp.any(c["asked"]), refreshed, lambda *s: s, c, inverse, reference)
@@ -752,7 +760,7 @@ def _newton(problem, c, inverse, reference):
     def round(state):
         def fresh(c, _, reference):
             c, reference = _rewind(c, reference)
-            inverse = jnp.linalg.inv(block_jacobians(problem.residual, c["Z"]))
+            inverse = jnp.linalg.inv(problem.jacobians(c["Z"]))
             return _pack(_served(_unpack(c), jnp.ones(1, bool))), inverse, reference
 
         c, inverse, reference = jax.lax.cond(_get(state[0], "asked")[0], fresh, lambda *s: s, *state)

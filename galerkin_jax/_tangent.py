@@ -67,8 +67,18 @@ def tangent(fn, params, Z, ok, dparams, *, dense_limit):
     return jnp.where(ok, dZ, 0.0)
 
 
+def structured_jacobian(fn, params, Z):
+    """dR/dZ at Z, flat ``(n, n)``, from the element's structure where ``fn`` carries one
+    (``fn.jacobian``: ``_march.element_residual``, a Galerkin method's field Jacobians at its
+    quadrature points), else None."""
+    jacobian = getattr(fn, "jacobian", None)
+    return None if jacobian is None else jacobian(Z, params)
+
+
 def _dense(fn, params, Z, ok, dR):
-    J = jax.jacfwd(lambda z: fn(z.reshape(Z.shape), params).reshape(-1))(Z.reshape(-1))
+    J = structured_jacobian(fn, params, Z)
+    if J is None:
+        J = jax.jacfwd(lambda z: fn(z.reshape(Z.shape), params).reshape(-1))(Z.reshape(-1))
     J = jnp.where(ok, J, jnp.eye(J.shape[0], dtype=J.dtype))
     return -jnp.linalg.solve(J, dR.reshape(-1)).reshape(Z.shape)
 

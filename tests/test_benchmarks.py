@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 ROOT = pathlib.Path(__file__).parent.parent
-GUARDS = {"adaptive", "compile", "gradients", "learning", "moderate", "peers", "stress"}
+GUARDS = {"adaptive", "compile", "gradients", "learning", "moderate", "newton", "peers", "stress"}
 
 
 def _peers_installed():

@@ -70,8 +70,10 @@ def test_a_closure_in_a_step_density_differentiates_as_args():
         return gj.integrate(H, Q0, P0, method=CG3, h=0.25, t1=3.0,
                             controller=gj.TimeTransform(lambda q, p: density(q, p, c))).q[-1, 0]
 
-    def passed(c):  # s(q, p, args) reads args; H takes args too, unread
-        return gj.integrate(lambda q, p, c: H(q, p), Q0, P0, method=CG3, h=0.25, t1=3.0, args=c,
+    H_args = lambda q, p, c: H(q, p)  # s(q, p, args) reads args; H takes args too, unread
+
+    def passed(c):  # one H and one s for every call: one program
+        return gj.integrate(H_args, Q0, P0, method=CG3, h=0.25, t1=3.0, args=c,
                             controller=gj.TimeTransform(density)).q[-1, 0]
 
     c = 0.5

@@ -39,27 +39,13 @@ def nonseparable(q, p):
     return 0.5 * (p @ p) * (1.0 + q @ q) + 0.5 * (q @ q)
 
 
-def pendulum_chain(n=10):
-    """The planar n-link pendulum (unit masses and rods, g = 1) in its links' angles:
-    H = p^T M(q)^-1 p / 2 + V(q), M_jk = (n - max(j, k)) cos(q_j - q_k). Not separable, and each
-    partial gradient of H runs through the solve with M."""
-    below = n - np.arange(n)
-    weight = jnp.asarray(np.minimum.outer(below, below).astype(float))
-
-    def H(q, p):
-        M = weight * jnp.cos(q[:, None] - q[None, :])
-        return 0.5 * p @ jnp.linalg.solve(M, p) + jnp.sum(jnp.asarray(below) * (1.0 - jnp.cos(q)))
-
-    rng = np.random.default_rng(2)
-    return H, rng.uniform(-1.0, 1.0, n), rng.normal(size=n)
-
-
 QUARTIC = scenes.quartic().H
 HIGH = (np.array([1.0, 0.0, 0.0]), np.array([100.0, 70.99, 94.66]))  # the quartic force at high momentum
 KEPLER_95 = scenes.kepler(0.95)
 PERICENTRE = (np.asarray(KEPLER_95.q0), np.asarray(KEPLER_95.p0))  # |q| = 0.05, |p| = 6.2
 FPUT = scenes.fput(16)
-CHAIN = pendulum_chain()
+CHAIN_SCENE = scenes.pendulum_chain(10, angle=1.0, momenta=1.0, seed=2)
+CHAIN = (CHAIN_SCENE.H, CHAIN_SCENE.q0, CHAIN_SCENE.p0)
 G2, L2, G3 = gj.gauss_legendre(2), gj.gauss_lobatto(2), gj.gauss_legendre(3)
 
 # name: (H, q0, p0, method, h, solver keywords)
