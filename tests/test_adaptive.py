@@ -39,16 +39,16 @@ def distance(sol, z1):
 
 def count_matrices(monkeypatch, log):
     """Append -1 to ``log`` for every Newton matrix, through an ordered host callback in
-    ``_solve.block_jacobians``, the one function that computes them (cached traces cleared)."""
+    ``_solve._Problem.jacobians``, the one function that computes them (cached traces cleared)."""
     from galerkin_jax import _solve
 
-    jacobians = _solve.block_jacobians
+    jacobians = _solve._Problem.jacobians
 
-    def counted(residual, Z):
+    def counted(problem, Z):
         jax.debug.callback(lambda: log.append(-1), ordered=True)
-        return jacobians(residual, Z)
+        return jacobians(problem, Z)
 
-    monkeypatch.setattr(_solve, "block_jacobians", counted)
+    monkeypatch.setattr(_solve._Problem, "jacobians", counted)
     jax.clear_caches()
 
 
@@ -172,7 +172,7 @@ def test_a_loose_tolerance_keeps_to_the_fixed_point(monkeypatch):
     every one. Under a controller a small system follows a large one's policy (back to the
     fixed point after ``newton_stretch`` elements): measured 1 matrix, the same 50 steps and
     the same final error, 3.4e-12. Matrices counted through a host callback in
-    ``_solve.block_jacobians``, the one function that computes them; bound 4."""
+    ``_solve._Problem.jacobians``, the one function that computes them; bound 4."""
     sol, z1, matrices = two_orbits_counting_matrices(monkeypatch, 1e-6)
     assert int(sol.status) == 0
     assert distance(sol, z1) < 1e-10
