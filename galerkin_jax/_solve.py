@@ -28,9 +28,9 @@ the fields of ``SolverOptions`` (named in parentheses), each with its unit and r
   has one (cG, dG: Hamilton's field's Jacobian at the quadrature points,
   ``_galerkin.galerkin_jacobian``), else from one tangent of R per unknown. A member refreshes
   its matrix when it contracts slower than ``theta_newton``, when it has iterated ``patience``
-  times with it in one element, or when an update goes astray (the update is rejected). Far from the root (a first element, a
-  large h omega) the steps follow Newton with a fresh matrix: a full step that does not lower
-  the residual is taken anyway, and so are the fresh steps after it while the residual comes
+  times with it in one element, or when an update goes astray (the update is rejected). Far
+  from the root (a first element, a large h omega) the steps follow Newton with a fresh matrix:
+  a full step that does not lower the residual is taken anyway, and so are the fresh steps after it while the residual comes
   back below where it started (the watchdog, ``watch``, in an element whose predictor is the
   constant guess, a run's first: plain Newton's first step can raise the residual and still
   reach the root in a few more); if it does not, and in the other elements, the member goes back there and halves its steps (damped Newton, down to
